@@ -1,0 +1,170 @@
+"""The closed loop of MODEL.md section 3: two robots on free-floating bases gripping one body.
+
+State layout (20 rows, batch on the last axis): rows 0-17 are nine per-robot quantities, each a
+(2, B) block with robot L first, in the order of `ROBOT_STATES`; rows 18 and 19 are the body's
+x_o and v_o. Everything is a pure function of (params, state, t).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from coopjax import surrogates
+from coopjax.params import PER_ROBOT, Params
+from coopjax.scenarios import Scenario
+
+ROBOT_STATES = ("x_r", "v_r", "x_v", "v_v", "q_c", "x_f", "v_f", "Z", "Y_e")
+BODY_STATES = ("x_o", "v_o")
+N_STATE = 2 * len(ROBOT_STATES) + len(BODY_STATES)
+STATE_NAMES = tuple(f"{q}_{r}" for q in ROBOT_STATES for r in "LR") + BODY_STATES
+
+
+def robot_row(name: str, robot: int) -> int:
+    return 2 * ROBOT_STATES.index(name) + robot
+
+
+def sign(batch_ndim: int):
+    """s_i: +1 for robot L (pushes in +x), -1 for robot R, shaped to broadcast over (2, B)."""
+    return jnp.array([1.0, -1.0]).reshape((2,) + (1,) * batch_ndim)
+
+
+def unpack(y):
+    """(20, B) -> dict of (2, B) per-robot blocks plus (B,) body rows."""
+    blocks = y[: 2 * len(ROBOT_STATES)].reshape((len(ROBOT_STATES), 2) + y.shape[1:])
+    out = dict(zip(ROBOT_STATES, blocks))
+    out["x_o"], out["v_o"] = y[-2], y[-1]
+    return out
+
+
+def pack(d) -> jax.Array:
+    robot = jnp.stack([d[q] for q in ROBOT_STATES]).reshape((2 * len(ROBOT_STATES),) + d["x_o"].shape)
+    return jnp.concatenate([robot, jnp.stack([d["x_o"], d["v_o"]])])
+
+
+def init_state(params: Params) -> jax.Array:
+    """All states start at 0: positions are displacements from the initial configuration."""
+    return jnp.zeros((N_STATE,) + params.batch_shape, params.M_b.dtype)
+
+
+class Options(NamedTuple):
+    """Static modelling choices (not arrays). Changing one retraces."""
+
+    switch: str = "hard"  # "hard" | "smooth" | "straight_through"
+    contact: str = "unilateral"  # "unilateral" | "bilateral"
+    gamma_min: float | None = None  # optional floor on gamma; MODEL.md leaves gamma unclipped
+
+
+SWITCHES = ("hard", "smooth", "straight_through")
+CONTACTS = ("unilateral", "bilateral")
+
+
+def check_options(options: Options) -> None:
+    if options.switch not in SWITCHES:
+        raise ValueError(f"unknown switch {options.switch!r}; choose one of: {', '.join(SWITCHES)}")
+    if options.contact not in CONTACTS:
+        raise ValueError(f"unknown contact {options.contact!r}; choose one of: {', '.join(CONTACTS)}")
+
+
+class Aux(NamedTuple):
+    """Signals at one instant that are not states but that users and metrics want."""
+
+    F: jax.Array  # gripper force on the body, (2, B), N
+    w: jax.Array  # swi(F, F_lim), (2, B)
+    gamma: jax.Array  # compensation gain (Eq. 8), (2, B)
+    x_ref: jax.Array  # reference position, (2, B), m
+    v_ref: jax.Array  # augmented reference velocity (Eq. 11), (2, B), m/s
+
+
+def controller(p: Params, v_ref, a_ref, v_meas, q_c, x_f, v_f, gamma, f_ext, base_coupling):
+    """Impedance controller with the virtual foundation in the controller domain (Eq. 4).
+
+    Solves exactly, per robot, the small linear system in (e_c, a_r, a_f):
+
+        err  = v_ref - v_meas - (1 - gamma) beta_H v_f
+        e_c  = M_c (a_ref - a_meas - (1 - gamma) beta_H a_f) + R_c err + K_c q_c
+        M_f a_f = e_c - R_f v_f - K_f x_f,     M_r a_r = mu_H e_c + f_ext
+
+    `base_coupling` is (1 - alpha_b) mu_H / M_v: how much of the base's reaction the measured
+    acceleration picks up (0 with full base compensation or a fixed base).
+    Returns (err, e_c, a_r, a_f); err is dq_c/dt.
+    """
+    g = (1.0 - gamma) * p.beta_H
+    err = v_ref - v_meas - g * v_f
+    D = p.M_c * a_ref + p.R_c * err + p.K_c * q_c
+    h = p.R_f * v_f + p.K_f * x_f
+    numerator = D - p.M_c * f_ext / p.M_r + p.M_c * g * h / p.M_f
+    denominator = 1.0 + p.M_c * p.mu_H / p.M_r + p.M_c * base_coupling + p.M_c * g / p.M_f
+    e_c = numerator / denominator
+    a_f = (e_c - h) / p.M_f
+    a_r = (p.mu_H * e_c + f_ext) / p.M_r
+    return err, e_c, a_r, a_f
+
+
+def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: Options):
+    """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B)."""
+    p = params
+    st = unpack(y)
+    s = sign(y.ndim - 1)
+    x_o, v_o = st["x_o"][None], st["v_o"][None]
+
+    delta = p.delta0 + s * (st["x_r"] - x_o)
+    delta_dot = s * (st["v_r"] - v_o)
+    F = surrogates.contact_force(p, delta, delta_dot, options)
+
+    # Gain modulation, Eq. 8 and 9 (the -(1-w) rho Z term realises the restart at each switch-on).
+    w = surrogates.switch(p, F, options)
+    Z = st["Z"]
+    gamma = 1.0 - w * (p.K_ini + p.K_GP * (F - p.F_lim) + p.K_GI * Z)
+    if options.gamma_min is not None:
+        gamma = jnp.maximum(gamma, options.gamma_min)
+    dZ = w * (F - p.F_lim) - p.tau * Z - (1.0 - w) * p.rho * Z
+
+    # Amnesia recovery, Eq. 10 and 11: only while force control is off.
+    v_cmd, a_cmd, x_ref = scenario.command(p, t)
+    Y_e = st["Y_e"]
+    dY_e = (1.0 - w) * (x_ref - st["x_r"]) - p.tau_e * Y_e - w * p.rho * Y_e
+    v_ref = v_cmd + (1.0 - w) * p.G_e * Y_e
+    a_ref = a_cmd + (1.0 - w) * p.G_e * dY_e
+
+    v_meas = st["v_r"] - (1.0 - p.alpha_b) * st["v_v"]
+    base_coupling = (1.0 - p.alpha_b) * p.mu_H / p.M_v
+    err, e_c, a_r, a_f = controller(
+        p, v_ref, a_ref, v_meas, st["q_c"], st["x_f"], st["v_f"], gamma, -s * F, base_coupling
+    )
+    a_v = -p.mu_H * e_c / p.M_v  # reaction of the actuator on the free-floating base
+    a_o = (F[0] - F[1]) / p.M_b
+
+    dy = pack(
+        dict(
+            x_r=st["v_r"], v_r=a_r, x_v=st["v_v"], v_v=a_v, q_c=err, x_f=st["v_f"], v_f=a_f,
+            Z=dZ, Y_e=dY_e, x_o=st["v_o"], v_o=a_o,
+        )
+    )
+    return dy, Aux(F=F, w=w, gamma=gamma, x_ref=x_ref, v_ref=v_ref)
+
+
+def momentum(params: Params, y: jax.Array) -> jax.Array:
+    """Total linear momentum sum_i (M_v v_v + M_r v_r) + M_b v_o; conserved with no external force."""
+    st = unpack(y)
+    return (params.M_v * st["v_v"] + params.M_r * st["v_r"]).sum(0) + params.M_b * st["v_o"]
+
+
+# A single robot on a fixed base pushed by a constant environment effort, with gamma frozen:
+# the harness of the paper's section 2 (Eq. 4-7). It reuses `controller`, the code the full model runs.
+GROUND_STATES = ("x_r", "v_r", "q_c", "x_f", "v_f")
+
+
+def ground_robot_field(params: Params, y, e_env, alpha):
+    """dy/dt for y = (x_r, v_r, q_c, x_f, v_f) of robot L, v_ref = 0, gamma = alpha.
+
+    Parameters are robot L's (index 0). The base is fixed, so the measured velocity is v_r.
+    """
+    p = dataclasses.replace(params, **{n: getattr(params, n)[0] for n in PER_ROBOT})
+    x_r, v_r, q_c, x_f, v_f = y
+    zero = jnp.zeros_like(v_r)
+    err, _, a_r, a_f = controller(p, zero, zero, v_r, q_c, x_f, v_f, alpha, e_env, 0.0)
+    return jnp.stack([v_r, a_r, err, v_f, a_f])
