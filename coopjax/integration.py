@@ -50,7 +50,6 @@ class SimConfig:
             raise ValueError(f"every is {self.every!r}: it must be a whole number of steps, at least 1")
         if self.dt > self.horizon:
             raise ValueError(f"dt = {self.dt:g} s is longer than the horizon T = {self.horizon:g} s")
-        objectives.window(get_scenario(self.scenario), self.dt, self.n_steps)
         return self
 
 
@@ -163,7 +162,7 @@ def integrate(params: Params, config: SimConfig) -> Solution:
         ts, ys, auxs = jax.tree_util.tree_map(
             lambda r, e: jnp.concatenate([r, e[None]]), records, (t_end, y, aux_end)
         )
-        after = ts.reshape((-1,) + (1,) * len(batch)) >= t_div  # (n, B)
+        after = ts[:, None] >= t_div[None]  # (n, B)
 
         def blank(x):
             return jnp.where(after[:, None], jnp.nan, x)

@@ -27,9 +27,9 @@ def robot_row(name: str, robot: int) -> int:
     return 2 * ROBOT_STATES.index(name) + robot
 
 
-def sign(batch_ndim: int):
+def sign(batch_ndim: int, dtype):
     """s_i: +1 for robot L (pushes in +x), -1 for robot R, shaped to broadcast over (2, B)."""
-    return jnp.array([1.0, -1.0]).reshape((2,) + (1,) * batch_ndim)
+    return jnp.array([1.0, -1.0], dtype).reshape((2,) + (1,) * batch_ndim)
 
 
 def unpack(y):
@@ -108,7 +108,7 @@ def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: O
     """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B)."""
     p = params
     st = unpack(y)
-    s = sign(y.ndim - 1)
+    s = sign(y.ndim - 1, y.dtype)
     x_o, v_o = st["x_o"][None], st["v_o"][None]
 
     delta = p.delta0 + s * (st["x_r"] - x_o)

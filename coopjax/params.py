@@ -139,6 +139,8 @@ def split_name(name: str) -> tuple[str, str | None]:
         base = name[: -len(robot) - 1]
         if name.endswith("_" + robot) and base in PER_ROBOT:
             return base, robot
+        if name.endswith("_" + robot) and base in SHARED:
+            raise ValueError(f"{base} is shared by both robots; set {base}, not {name}")
     raise ValueError(f"unknown parameter {name!r}{_suggest(name)}")
 
 
@@ -210,8 +212,6 @@ def make_params(base: Params | None = None, dtype=None, **values) -> Params:
                 rows = [value if robot in (None, r) else leaves[n][i] for i, r in enumerate(ROBOTS)]
                 leaves[n] = (jnp if _any_tracer(rows) else np).stack(rows)
             else:
-                if robot is not None:
-                    raise ValueError(f"{n} is shared by both robots; set {n}, not {n}_{robot}")
                 leaves[n] = value
 
     params = Params(**{n: jnp.asarray(v, dtype) for n, v in leaves.items()})

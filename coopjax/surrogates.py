@@ -19,7 +19,7 @@ def switch(p, F, options):
     """swi(F, F_lim): 1 while force control is on (F >= F_lim), else 0."""
     if options.switch == "hard":
         return (F >= p.F_lim).astype(F.dtype)
-    smooth = jax.nn.sigmoid((F - p.F_lim) / p.k_F)
+    smooth = jax.nn.sigmoid((F - p.F_lim) / p.k_F[None])
     if options.switch == "smooth":
         return smooth
     return _straight_through((F >= p.F_lim).astype(F.dtype), smooth)
@@ -34,7 +34,8 @@ def contact_force(p, delta, delta_dot, options):
     hard = jnp.where(delta > 0.0, jnp.maximum(kelvin, 0.0), 0.0)
     if options.switch == "hard":
         return hard
-    smooth = p.k_c * jax.nn.softplus(kelvin / p.k_c) * jax.nn.sigmoid(delta / p.eps_delta)
+    k_c, eps_delta = p.k_c[None], p.eps_delta[None]  # shared widths over the robot axis
+    smooth = k_c * jax.nn.softplus(kelvin / k_c) * jax.nn.sigmoid(delta / eps_delta)
     if options.switch == "smooth":
         return smooth
     return _straight_through(hard, smooth)

@@ -1,0 +1,163 @@
+"""The `coopjax` command line.
+
+Any mistake in the input is one line on stderr and exit code 2, with no traceback and no output
+file. Files are written atomically, only after the run succeeded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 1
+PLOT_FORMATS = ("png", "pdf", "svg")
+
+
+class BadInput(Exception):
+    pass
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own mistakes: one line, exit 2
+        raise BadInput(f"{message} (see `{self.prog} --help`)")
+
+
+def parse_assignment(text: str) -> tuple[str, float]:
+    """`NAME=VALUE` -> (NAME, float(VALUE)), with a clear message otherwise."""
+    name, sep, value = text.partition("=")
+    if not sep or not name or not value:
+        raise BadInput(f"--set expects NAME=VALUE, got {text!r}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise BadInput(f"--set {name}: {value!r} is not a number") from None
+    if not math.isfinite(number):
+        raise BadInput(f"--set {name}: {value!r} is not finite")
+    return name.strip(), number
+
+
+def check_output(path: str, what: str, extensions=None) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise BadInput(f"{what} {path!r}: folder {folder!r} does not exist")
+    if extensions and path.rsplit(".", 1)[-1].lower() not in extensions:
+        raise BadInput(f"{what} {path!r}: the file name must end in one of .{', .'.join(extensions)}")
+
+
+def build_parser() -> Parser:
+    from coopjax.scenarios import SCENARIOS
+
+    parser = Parser(
+        prog="coopjax",
+        description="Differentiable simulator of two cooperating space robots with virtual-foundation "
+        "force control (Pathak et al.). See MODEL.md in the docs for the equations.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    sub.required = True
+
+    sim = sub.add_parser(
+        "simulate",
+        help="run one closed-loop simulation, write its trajectory as CSV and optionally plot it",
+        description="Run one closed-loop simulation from rest and write a decimated trajectory.",
+    )
+    sim.add_argument("--scenario", default="paper", help=f"one of: {', '.join(SCENARIOS)} (default: paper)")
+    sim.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="override a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; "
+        "`coopjax params` lists the names)",
+    )
+    sim.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
+    sim.add_argument("--contact", default="unilateral", help="unilateral (default) or bilateral")
+    sim.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default: 1e-3)")
+    sim.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
+    sim.add_argument("--every", type=int, default=None, help="record every N steps (default: every 10 ms)")
+    sim.add_argument("--x64", action="store_true", help="float64 (default: float32)")
+    sim.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv)")
+    sim.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions")
+
+    sub.add_parser("params", help="list every parameter with its default, unit and meaning")
+    return parser
+
+
+def cmd_params() -> int:
+    from coopjax.params import PARAMETERS
+
+    print(f"{'name':<10} {'default':>10}  {'unit':<8} {'per robot':<9}  meaning")
+    for name, spec in PARAMETERS.items():
+        per = "yes (_L/_R)" if spec.per_robot else "shared"
+        print(f"{name:<10} {spec.default:>10.4g}  {spec.unit:<8} {per:<9}  {spec.doc}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from coopjax import make_params, simulate
+    from coopjax.model import STATE_NAMES
+    from coopjax.plotting import plot_run
+
+    check_output(args.out, "--out", ("csv",))
+    if args.plot:
+        check_output(args.plot, "--plot", PLOT_FORMATS)
+    overrides = dict(parse_assignment(s) for s in args.set)
+    every = args.every if args.every is not None else max(1, int(round(0.01 / args.dt))) if args.dt > 0 else 1
+    params = make_params(**overrides)
+    solution = simulate(
+        params, args.scenario, switch=args.switch, contact=args.contact, dt=args.dt, T=args.T, every=every
+    )
+
+    traj = solution.trajectory
+    columns = {"t": traj.t}
+    for name, signal in (("F", traj.aux.F), ("gamma", traj.aux.gamma), ("w", traj.aux.w), ("x_ref", traj.aux.x_ref)):
+        for i, r in enumerate("LR"):
+            columns[f"{name}_{r}"] = signal[:, i]
+    for i, name in enumerate(STATE_NAMES):
+        columns[name] = traj.y[:, i]
+    from coopjax.io import write_csv
+
+    write_csv(args.out, columns)
+    if args.plot:
+        plot_run(traj, params, args.scenario, args.plot)
+
+    m = solution.metrics
+    t = np.asarray(traj.t)
+    F = np.asarray(traj.aux.F)
+    print(f"coopjax simulate: scenario {args.scenario}, switch {args.switch}, dt {args.dt:g} s, "
+          f"{'float64' if args.x64 else 'float32'}")
+    print(f"{'t [s]':>6} {'F_L [N]':>9} {'F_R [N]':>9} {'gamma_L':>8} {'gamma_R':>8}")
+    for tq in (0.5, 1.0, 2.0, 3.0, 4.0):
+        if tq <= t[-1] + 1e-9:
+            k = int(np.argmin(np.abs(t - tq)))
+            g = np.asarray(traj.aux.gamma)[k]
+            print(f"{t[k]:6.2f} {F[k, 0]:9.3f} {F[k, 1]:9.3f} {g[0]:8.3f} {g[1]:8.3f}")
+    print(f"min grip {float(m.min_grip):.3f} N, peak grip {float(m.peak_grip):.3f} N, "
+          f"slip {float(m.slip):.4g} N^2, crush {float(m.crush):.4g} N^2, RMS lag {float(m.rms_lag) * 1e3:.3f} mm")
+    print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
+    if not bool(m.finite):
+        print(f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s "
+              "(values after that are NaN); try a smaller --dt", file=sys.stderr)
+        return EXIT_DIVERGED
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command == "params":
+            return cmd_params()
+        return cmd_simulate(args)
+    except (BadInput, ValueError) as error:
+        print(f"coopjax: error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

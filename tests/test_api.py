@@ -1,0 +1,85 @@
+"""The Python API: no recompilation, float32, static checks, and the paper's claim."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import coopjax as cj
+
+
+def test_second_call_with_new_values_compiles_nothing(caplog):
+    cj.simulate(cj.make_params(K_GP=np.array([0.5, 0.6])), "carry", T=1.0, every=100)
+    caplog.set_level(logging.WARNING)
+    with jax.log_compiles():
+        sol = cj.simulate(cj.make_params(K_GP=np.array([0.7, 0.8])), "carry", T=1.0, every=100)
+        jax.block_until_ready(sol)
+    compiled = [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()]
+    assert compiled == []
+
+
+def test_float32_runs_in_float32_and_tracks_float64():
+    p64 = cj.make_params()
+    p32 = p64.astype(jnp.float32)
+    m32 = cj.simulate(p32, "paper").metrics
+    m64 = cj.simulate(p64, "paper").metrics
+    assert m32.peak_grip.dtype == jnp.float32 and m64.peak_grip.dtype == jnp.float64
+    assert float(m32.peak_grip) == pytest.approx(float(m64.peak_grip), rel=1e-4)
+
+
+def test_paper_claim_grip_stays_at_or_above_F_lim_once_reached():
+    """Pathak et al.: 'the minimum prescribed gripping force is maintained by the controller'."""
+    sol = cj.simulate(cj.make_params(), "paper", switch="hard", dt=1e-3, every=1)
+    F = np.asarray(sol.trajectory.aux.F)  # (n, 2)
+    for i in range(2):
+        reached = np.argmax(F[:, i] >= 10.0)
+        assert F[reached, i] >= 10.0
+        assert F[reached:, i].min() >= 10.0
+    assert float(sol.metrics.min_grip) >= 10.0
+    assert bool(sol.metrics.finite)
+
+
+def test_surrogates_tend_to_the_hard_model_as_widths_shrink():
+    hard = cj.simulate(cj.make_params(), "paper", switch="hard", dt=1e-4, every=10)
+    gaps = []
+    for scale in (4.0, 1.0, 0.25):
+        widths = dict(k_F=0.5 * scale, k_c=0.5 * scale, eps_delta=1e-4 * scale)
+        smooth = cj.simulate(cj.make_params(**widths), "paper", switch="smooth", dt=1e-4, every=10)
+        gaps.append(np.abs(np.asarray(smooth.trajectory.aux.F) - np.asarray(hard.trajectory.aux.F)).mean())
+    assert gaps[0] > 2 * gaps[1] > 4 * gaps[2], gaps
+
+
+def test_straight_through_is_hard_forward_and_has_gradients():
+    p = cj.make_params()
+    hard = cj.simulate(p, "paper", switch="hard", T=0.5).metrics
+    st = cj.simulate(p, "paper", switch="straight_through", T=0.5).metrics
+    assert float(st.peak_grip) == pytest.approx(float(hard.peak_grip), rel=1e-12)
+    g = jax.grad(lambda k: cj.simulate(cj.make_params(K_GP=k), "paper", switch="straight_through", T=0.5).metrics.peak_grip)(0.5)
+    assert np.isfinite(float(g)) and float(g) != 0.0
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: cj.make_params(K_XX=1.0), "unknown parameter 'K_XX'"),
+        (lambda: cj.make_params(K_GPP=1.0), "did you mean 'K_GP'"),
+        (lambda: cj.make_params(M_b=float("nan")), "must be finite"),
+        (lambda: cj.make_params(M_v_L=-1.0), "M_v_L is -1 kg: it must be positive"),
+        (lambda: cj.make_params(K_g=0.0), "K_g_L is 0 N/m: it must be positive"),
+        (lambda: cj.make_params(M_b_L=1.0), "M_b is shared by both robots; set M_b, not M_b_L"),
+        (lambda: cj.simulate(cj.make_params(), "orbit"), "unknown scenario 'orbit'"),
+        (lambda: cj.simulate(cj.make_params(), dt=0.0), "dt is 0: it must be positive"),
+        (lambda: cj.simulate(cj.make_params(), dt=-1e-3), "dt is -0.001: it must be positive"),
+        (lambda: cj.simulate(cj.make_params(), T=-1.0), "T is -1: it must be positive"),
+        (lambda: cj.simulate(cj.make_params(), every=0), "at least 1"),
+        (lambda: cj.simulate(cj.make_params(), switch="soft"), "unknown switch 'soft'"),
+        (lambda: cj.simulate(cj.make_params(), dt=0.01), "too large for RK4"),
+        (lambda: cj.simulate(cj.make_params(K_GP=100.0), dt=1e-3), "stable only for dt <="),
+    ],
+)
+def test_bad_input_raises_value_error(call, message):
+    with pytest.raises(ValueError, match=None) as info:
+        call()
+    assert message in str(info.value)

@@ -1,0 +1,61 @@
+"""The command line: real runs, and bad input as one line with exit code 2 and no file."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from coopjax import cli
+
+REQUIRED = "t,F_L,F_R,gamma_L,gamma_R,x_r_L,x_r_R,x_o,x_ref_L,x_ref_R".split(",")
+
+
+def test_simulate_writes_csv_and_plot(fresh_dir, capsys):
+    code = cli.main(["simulate", "--scenario", "paper", "--x64", "--out", "run.csv", "--plot", "fig.png"])
+    assert code == 0
+    header = open("run.csv").readline().strip().split(",")
+    assert set(REQUIRED) <= set(header)
+    data = np.loadtxt("run.csv", delimiter=",", skiprows=1)
+    F_L = data[:, header.index("F_L")]
+    assert data[-1, 0] == pytest.approx(3.0) and F_L.max() > 10.0
+    assert os.path.getsize("fig.png") > 10_000
+    assert "wrote run.csv and fig.png" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--scenario", "orbit"], "unknown scenario 'orbit'"),
+        (["--set", "K_XX=1"], "unknown parameter 'K_XX'"),
+        (["--set", "K_GP"], "expects NAME=VALUE"),
+        (["--set", "K_GP=abc"], "is not a number"),
+        (["--set", "M_b=nan"], "is not finite"),
+        (["--set", "M_b=inf"], "is not finite"),
+        (["--set", "M_b=-2"], "it must be positive"),
+        (["--set", "K_f=0"], "it must be positive"),
+        (["--dt", "0"], "dt is 0: it must be positive"),
+        (["--T", "-1"], "T is -1: it must be positive"),
+        (["--every", "0"], "at least 1"),
+        (["--dt", "0.02"], "too large for RK4"),
+        (["--dt", "abc"], "invalid float value"),
+        (["--out", "nowhere/run.csv"], "does not exist"),
+        (["--plot", "fig.bmp"], "must end in one of"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_no_file(fresh_dir, capsys, args, message):
+    code = cli.main(["simulate", "--out", "run.csv"] + args)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert os.listdir(fresh_dir) == []
+
+
+def test_real_process_exit_code_and_no_traceback(fresh_dir):
+    run = subprocess.run([sys.executable, "-m", "coopjax.cli", "simulate", "--set", "M_b=-1"],
+                         capture_output=True, text=True)
+    assert run.returncode == 2
+    assert run.stderr.strip() == "coopjax: error: M_b is -1 kg: it must be positive (body mass)"
+    assert os.listdir(fresh_dir) == []

@@ -1,0 +1,42 @@
+"""Gradients of the carry objective against central finite differences, in both AD modes."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import coopjax as cj
+
+GAINS = ("K_GP", "K_GI", "tau", "G_e")
+DT = 1e-4  # converged for the smooth model (see test_reference); 1e-3 is not, for carry
+
+
+def objective(theta, dt=DT):
+    params = cj.make_params(**dict(zip(GAINS, theta)), M_b=2.0)
+    metrics = cj.simulate(params, "carry", switch="smooth", dt=dt).metrics
+    return cj.loss(metrics)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    theta = np.array([0.5, 0.1, 1.25, 600.0])
+    fd = []
+    for i in range(4):
+        h = 1e-5 * theta[i]
+        e = np.zeros(4)
+        e[i] = h
+        fd.append((float(objective(theta + e)) - float(objective(theta - e))) / (2 * h))
+    return theta, np.array(fd)
+
+
+def test_reverse_mode_matches_finite_differences(reference):
+    theta, fd = reference
+    grad = np.asarray(jax.grad(objective)(jnp.asarray(theta)))
+    np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def test_forward_mode_matches_finite_differences_and_reverse(reference):
+    theta, fd = reference
+    jac = np.asarray(jax.jacfwd(objective)(jnp.asarray(theta)))
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    assert np.all(np.abs(fd) > 0)  # each gain really moves the objective
