@@ -14,6 +14,8 @@ import sys
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
 PLOT_FORMATS = ("png", "pdf", "svg")
+# Largest steps at which the Table 1 run's forces stopped changing with dt (docs/model.md, "Step size").
+CONVERGED_DT = {("carry", "hard"): 5e-5, ("carry", "straight_through"): 5e-5, ("carry", "smooth"): 1e-4}
 
 
 class BadInput(Exception):
@@ -137,8 +139,14 @@ def cmd_simulate(args) -> int:
             k = int(np.argmin(np.abs(t - tq)))
             g = np.asarray(traj.aux.gamma)[k]
             print(f"{t[k]:6.2f} {F[k, 0]:9.3f} {F[k, 1]:9.3f} {g[0]:8.3f} {g[1]:8.3f}")
+    lag = float(m.rms_lag)
+    lag_text = f"{lag:.3f} m" if lag >= 1 else f"{lag * 1e3:.3f} mm"
     print(f"min grip {float(m.min_grip):.3f} N, peak grip {float(m.peak_grip):.3f} N, "
-          f"slip {float(m.slip):.4g} N^2, crush {float(m.crush):.4g} N^2, RMS lag {float(m.rms_lag) * 1e3:.3f} mm")
+          f"slip {float(m.slip):.4g} N^2, crush {float(m.crush):.4g} N^2, RMS lag {lag_text}")
+    converged_dt = CONVERGED_DT.get((args.scenario, args.switch))
+    if converged_dt and args.dt > converged_dt:
+        print(f"note: {args.scenario} with the {args.switch} switch needs dt <= {converged_dt:g} s for "
+              "step-independent forces (docs/model.md, 'Step size'); this run used a coarser step")
     print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
     if not bool(m.finite):
         print(f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s "
