@@ -87,10 +87,10 @@ def build_parser() -> Parser:
 def cmd_params() -> int:
     from coopjax.params import PARAMETERS
 
-    print(f"{'name':<10} {'default':>10}  {'unit':<8} {'per robot':<9}  meaning")
+    print(f"{'name':<10} {'default':>10}  {'unit':<8} {'per robot':<11}  meaning")
     for name, spec in PARAMETERS.items():
         per = "yes (_L/_R)" if spec.per_robot else "shared"
-        print(f"{name:<10} {spec.default:>10.4g}  {spec.unit:<8} {per:<9}  {spec.doc}")
+        print(f"{name:<10} {spec.default:>10.4g}  {spec.unit:<8} {per:<11}  {spec.doc}")
     return 0
 
 
@@ -165,6 +165,9 @@ def main(argv=None) -> int:
     except (BadInput, ValueError) as error:
         print(f"coopjax: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except BrokenPipeError:  # `coopjax params | head`: the reader left, nothing is wrong
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -83,3 +83,12 @@ def test_bad_input_raises_value_error(call, message):
     with pytest.raises(ValueError, match=None) as info:
         call()
     assert message in str(info.value)
+
+
+def test_bilateral_contact_pulls_where_unilateral_lets_go():
+    # In the release phase the tips back away: a unilateral gripper goes slack, a bilateral one pulls.
+    run = lambda contact: np.asarray(
+        cj.simulate(cj.make_params(), "carry", switch="smooth", contact=contact, dt=1e-4, every=100).trajectory.aux.F)
+    unilateral, bilateral = run("unilateral"), run("bilateral")
+    assert unilateral.min() >= 0.0
+    assert bilateral.min() < -1.0
