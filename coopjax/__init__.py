@@ -5,5 +5,6 @@ from coopjax.model import STATE_NAMES, Aux, Options, momentum, vector_field
 from coopjax.objectives import Metrics, Weights, loss
 from coopjax.params import PARAMETERS, Params, make_params
 from coopjax.scenarios import SCENARIOS
+from coopjax.sweeps import sweep
 
 __version__ = "0.1.0"

@@ -9,7 +9,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shutil
 import sys
+import time
+
+import numpy as np
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
@@ -80,8 +84,129 @@ def build_parser() -> Parser:
     sim.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv)")
     sim.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions")
 
+    sw = sub.add_parser(
+        "sweep",
+        help="run many parameter sets (Monte-Carlo, grid or a table) and write one row of metrics each",
+        description="Sweep the closed loop over parameter sets, sharded over this machine's CPU cores, in "
+        "resumable chunks. DIST is uniform:a:b, loguniform:a:b, normal:mean:sd, choice:v1,v2,... or "
+        "grid:a:b:k (grid axes form a full factorial and imply --n).",
+    )
+    sw.add_argument("--scenario", default="carry", help="carry (default) or paper")
+    sw.add_argument("--n", type=int, default=None, help="number of samples (implied by grid axes or --from)")
+    sw.add_argument("--vary", action="append", default=[], metavar="NAME=DIST", help="a varied parameter (repeatable)")
+    sw.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a fixed parameter (repeatable)")
+    sw.add_argument("--from", dest="from_file", default=None, metavar="TABLE", help="parameter sets from a CSV or Parquet table, one row each")
+    sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sw.add_argument("--chunk", type=int, default=16384, help="samples per saved chunk (default 16384)")
+    sw.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
+    sw.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default 1e-3; see docs/model.md on step size)")
+    sw.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
+    sw.add_argument("--x64", action="store_true", help="float64 (default float32)")
+    sw.add_argument("--devices", type=int, default=None, help="CPU devices to shard over (default: one per core)")
+    sw.add_argument("--out", default="sweep.csv", help="sweep.csv or sweep.parquet (default sweep.csv)")
+    sw.add_argument("--resume", action="store_true", help="finish an interrupted sweep with the same options")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.add_argument("--coordinator", default=os.environ.get("COOPJAX_COORDINATOR"), metavar="HOST:PORT",
+                    help="jax.distributed coordinator (or COOPJAX_COORDINATOR)")
+    sw.add_argument("--num-processes", type=int, default=_env_int("COOPJAX_NUM_PROCESSES"), help="(or COOPJAX_NUM_PROCESSES)")
+    sw.add_argument("--process-id", type=int, default=_env_int("COOPJAX_PROCESS_ID"), help="(or COOPJAX_PROCESS_ID)")
+
+    ps = sub.add_parser("plot-sweep", help="scatter a metric against a parameter, with histograms of the metrics")
+    ps.add_argument("table", help="a sweep table (.csv or .parquet)")
+    ps.add_argument("--x", default="M_b", help="column on the x axis (default M_b)")
+    ps.add_argument("--y", default="min_grip", help="column on the y axis (default min_grip)")
+    ps.add_argument("--color", default=None, help="column for the colour scale")
+    ps.add_argument("--out", default="sweep.png", help="figure file (default sweep.png)")
+
     sub.add_parser("params", help="list every parameter with its default, unit and meaning")
     return parser
+
+
+def _env_int(name):
+    value = os.environ.get(name)
+    return int(value) if value and value.isdigit() else None
+
+
+def cmd_sweep(args) -> int:
+    import jax
+
+    distributed = [args.coordinator, args.num_processes, args.process_id]
+    if any(v is not None for v in distributed) and not all(v is not None for v in distributed):
+        raise BadInput("--coordinator, --num-processes and --process-id go together")
+    devices = args.devices or os.cpu_count() or 1
+    if devices < 1:
+        raise BadInput(f"--devices is {devices}: it must be at least 1")
+    check_output(args.out, "--out", ("csv", "parquet"))
+    if args.out.endswith(".parquet"):
+        try:
+            import pandas  # noqa: F401
+            import pyarrow  # noqa: F401
+        except ImportError:
+            raise BadInput("writing Parquet needs pandas and pyarrow: pip install 'coopjax[sweep]', or use --out sweep.csv")
+
+    from coopjax import sweeps
+
+    table = None
+    if args.from_file:
+        if not os.path.exists(args.from_file):
+            raise BadInput(f"--from {args.from_file!r}: no such file")
+        table = sweeps.read_table(args.from_file)
+        table.pop("sample", None)
+    spec = sweeps.make_spec(
+        args.scenario, args.n, dict(_parse_vary(v) for v in args.vary), dict(parse_assignment(s) for s in args.set),
+        args.seed, args.switch, args.dt, args.T, args.x64, table,
+    )
+    # Set here, in the entry point, and only now that the input is known to be good: the device
+    # count is fixed once JAX's backend starts (a caller that already started it keeps its own).
+    try:
+        jax.config.update("jax_num_cpu_devices", devices)
+    except RuntimeError:
+        pass
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    if all(v is not None for v in distributed):
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    parts = args.out + ".parts"
+    start = time.perf_counter()
+    columns = sweeps.run(spec, chunk=args.chunk, parts=parts, resume=args.resume, progress=not args.quiet)
+    if jax.process_index() == 0:
+        sweeps.write_table(args.out, columns)
+        shutil.rmtree(parts, ignore_errors=True)
+        elapsed = time.perf_counter() - start
+        finite = np.asarray(columns["finite"])
+        print(f"coopjax sweep: {spec.n} samples of {spec.scenario} in {elapsed:.1f} s on "
+              f"{jax.device_count()} device(s) x {jax.process_count()} process(es); "
+              f"{int((~finite).sum())} diverged")
+        for name in ("min_grip", "peak_grip", "rms_lag"):
+            v = np.asarray(columns[name])[finite]
+            if v.size:
+                print(f"  {name:<10} min {v.min():10.4g}  median {np.median(v):10.4g}  max {v.max():10.4g}")
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _parse_vary(text: str):
+    name, sep, dist = text.partition("=")
+    if not sep or not name or not dist:
+        raise BadInput(f"--vary expects NAME=DIST, got {text!r}")
+    return name.strip(), dist.strip()
+
+
+def cmd_plot_sweep(args) -> int:
+    from coopjax import sweeps
+    from coopjax.plotting import plot_sweep
+
+    if not os.path.exists(args.table):
+        raise BadInput(f"{args.table!r}: no such file")
+    check_output(args.out, "--out", PLOT_FORMATS)
+    columns = sweeps.read_table(args.table)
+    for name in (args.x, args.y, args.color):
+        if name is not None and name not in columns:
+            raise BadInput(f"no column {name!r} in {args.table}; it has: {', '.join(columns)}")
+    plot_sweep(columns, args.x, args.y, args.color, args.out)
+    print(f"wrote {args.out}")
+    return 0
 
 
 def cmd_params() -> int:
@@ -161,6 +286,10 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
         if args.command == "params":
             return cmd_params()
+        if args.command == "sweep":
+            return cmd_sweep(args)
+        if args.command == "plot-sweep":
+            return cmd_plot_sweep(args)
         return cmd_simulate(args)
     except (BadInput, ValueError) as error:
         print(f"coopjax: error: {error}", file=sys.stderr)
