@@ -23,7 +23,6 @@ import numpy as np
 from coopjax import sweeps
 spec = sweeps.make_spec("carry", B, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.7"})
 runner = sweeps._Runner(spec, jax.local_devices())
-runner.block = B // devices
 values = sweeps.draw(spec.distributions(), np.arange(B), 0)
 t0 = time.perf_counter(); runner(values); first = time.perf_counter() - t0
 times = []
