@@ -272,6 +272,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
     dists = spec.distributions()
     table = {k: np.asarray(v) for k, v in spec.table}
 
+    check_values(spec)  # before anything is written
     done = np.zeros(n_chunks, bool)
     if parts is not None:
         done = _prepare_parts(parts, spec, chunk, resume, n_chunks) if pid == 0 else done
@@ -321,6 +322,32 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
         columns[name] = metrics[:, j]
     columns["finite"] = columns["finite"] > 0.5
     return columns
+
+
+def check_values(spec: SweepSpec, block: int = 1 << 20) -> None:
+    """Every sample's varied values obey the parameter's sign rule, or a ValueError says which not."""
+    dists = spec.distributions()
+    sources = {name: f"--vary {name}={text}" for name, text in spec.vary}
+    sources.update({name: "--from" for name, _ in spec.table})
+    table = {k: np.asarray(v) for k, v in spec.table}
+    for start in range(0, spec.n, block):
+        index = np.arange(start, min(start + block, spec.n))
+        values = {k: v[index] for k, v in table.items()}
+        values.update(draw(dists, index, spec.seed))
+        for name, v in values.items():
+            spec_ = PARAMETERS[split_name(name)[0]]
+            bad = ~np.isfinite(v)
+            if spec_.check == "positive":
+                bad |= v <= 0
+            elif spec_.check == "nonnegative":
+                bad |= v < 0
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(
+                    f"{sources[name]} gives {name} = {v[i]:g} at sample {start + i}, but {name} must be "
+                    f"{'finite' if spec_.check == 'finite' else spec_.check}: choose a distribution that stays in range "
+                    "(e.g. loguniform)"
+                )
 
 
 def _part_path(parts: str, k: int) -> str:

@@ -135,6 +135,7 @@ def test_a_diverging_sample_is_flagged_and_the_others_are_right():
         (["--vary", "K_GP=uniform:1:2"], "--n N"),
         (["--vary", "K_GP=grid:1:2:3", "--n", "5"], "disagrees"),
         (["--vary", "K_GP=uniform:1:2", "--n", "5", "--chunk", "0"], "at least 1"),
+        (["--vary", "M_b=normal:1:2", "--n", "50"], "--vary M_b=normal:1:2 gives M_b = -"),
     ],
 )
 def test_bad_vary_and_set_are_one_line_and_exit_2(fresh_dir, capsys, args, message):
