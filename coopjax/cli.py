@@ -53,6 +53,13 @@ def check_output(path: str, what: str, extensions=None) -> None:
         raise BadInput(f"{what} {path!r}: the file name must end in one of .{', .'.join(extensions)}")
 
 
+def note_step_size(args) -> None:
+    converged_dt = CONVERGED_DT.get((args.scenario, args.switch))
+    if converged_dt and args.dt > converged_dt:
+        print(f"note: {args.scenario} with the {args.switch} switch needs dt <= {converged_dt:g} s for "
+              "step-independent forces (docs/model.md, 'Step size'); this run used a coarser step")
+
+
 def build_parser() -> Parser:
     from coopjax.scenarios import SCENARIOS
 
@@ -182,6 +189,7 @@ def cmd_sweep(args) -> int:
             v = np.asarray(columns[name])[finite]
             if v.size:
                 print(f"  {name:<10} min {v.min():10.4g}  median {np.median(v):10.4g}  max {v.max():10.4g}")
+        note_step_size(args)
         print(f"wrote {args.out}")
     return 0
 
@@ -268,10 +276,7 @@ def cmd_simulate(args) -> int:
     lag_text = f"{lag:.3f} m" if lag >= 1 else f"{lag * 1e3:.3f} mm"
     print(f"min grip {float(m.min_grip):.3f} N, peak grip {float(m.peak_grip):.3f} N, "
           f"slip {float(m.slip):.4g} N^2, crush {float(m.crush):.4g} N^2, RMS lag {lag_text}")
-    converged_dt = CONVERGED_DT.get((args.scenario, args.switch))
-    if converged_dt and args.dt > converged_dt:
-        print(f"note: {args.scenario} with the {args.switch} switch needs dt <= {converged_dt:g} s for "
-              "step-independent forces (docs/model.md, 'Step size'); this run used a coarser step")
+    note_step_size(args)
     print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
     if not bool(m.finite):
         print(f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s "
