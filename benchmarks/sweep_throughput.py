@@ -39,17 +39,22 @@ def main():
     parser.add_argument("--B", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
+    from coopjax.cli import FAST_XLA_FLAG
+
     results = []
-    for x64 in (0, 1):
-        for devices in (1, os.cpu_count() or 1):
-            out = subprocess.run([sys.executable, "-c", CHILD, str(devices), str(args.B), str(args.repeats), str(x64)],
-                                 capture_output=True, text=True, check=True)
-            r = json.loads(out.stdout.strip().splitlines()[-1])
-            results.append(r)
-            print(f"{'float64' if x64 else 'float32'}, {devices} device(s): compile ~{r['compile_s']:.2f} s, "
-                  f"run median {r['run_s']:.3f} s, {r['steps_per_s'] / 1e6:.2f} M parameter-set steps/s")
-        one, many = results[-2], results[-1]
-        print(f"  ratio {many['devices']} devices / 1 device: {many['steps_per_s'] / one['steps_per_s']:.2f}")
+    for label, xla_flags in (("XLA defaults", ""), ("CLI's XLA flag", FAST_XLA_FLAG)):
+        print(f"-- {label}: XLA_FLAGS={xla_flags!r}")
+        env = {**os.environ, "XLA_FLAGS": xla_flags}
+        for x64 in (0, 1):
+            for devices in (1, os.cpu_count() or 1):
+                out = subprocess.run([sys.executable, "-c", CHILD, str(devices), str(args.B), str(args.repeats), str(x64)],
+                                     capture_output=True, text=True, check=True, env=env)
+                r = json.loads(out.stdout.strip().splitlines()[-1])
+                results.append(r)
+                print(f"{'float64' if x64 else 'float32'}, {devices} device(s): compile ~{r['compile_s']:.2f} s, "
+                      f"run median {r['run_s']:.3f} s, {r['steps_per_s'] / 1e6:.2f} M parameter-set steps/s")
+            one, many = results[-2], results[-1]
+            print(f"  ratio {many['devices']} devices / 1 device: {many['steps_per_s'] / one['steps_per_s']:.2f}")
     print(f"jax {results[0]['jax']}, cores {os.cpu_count()}, B = {args.B}, 4000 steps; target 50 M (float32), 25 M (float64)")
 
 
