@@ -71,28 +71,31 @@ def build_parser() -> Parser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
 
+    # Options every simulating command shares.
+    common = Parser(add_help=False)
+    common.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="fix a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; "
+        "`coopjax params` lists the names)",
+    )
+    common.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
+    common.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default 1e-3; see docs/model.md on step size)")
+    common.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
+    common.add_argument("--x64", action="store_true", help="float64 (default: float32)")
+
     sim = sub.add_parser(
-        "simulate",
+        "simulate", parents=[common],
         help="run one closed-loop simulation, write its trajectory as CSV and optionally plot it",
         description="Run one closed-loop simulation from rest and write a decimated trajectory.",
     )
     sim.add_argument("--scenario", default="paper", help=f"one of: {', '.join(SCENARIOS)} (default: paper)")
-    sim.add_argument(
-        "--set", action="append", default=[], metavar="NAME=VALUE",
-        help="override a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; "
-        "`coopjax params` lists the names)",
-    )
-    sim.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
     sim.add_argument("--contact", default="unilateral", help="unilateral (default) or bilateral")
-    sim.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default: 1e-3)")
-    sim.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
     sim.add_argument("--every", type=int, default=None, help="record every N steps (default: every 10 ms)")
-    sim.add_argument("--x64", action="store_true", help="float64 (default: float32)")
     sim.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv)")
     sim.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions")
 
     sw = sub.add_parser(
-        "sweep",
+        "sweep", parents=[common],
         help="run many parameter sets (Monte-Carlo, grid or a table) and write one row of metrics each",
         description="Sweep the closed loop over parameter sets, sharded over this machine's CPU cores, in "
         "resumable chunks. DIST is uniform:a:b, loguniform:a:b, normal:mean:sd, choice:v1,v2,... or "
@@ -101,14 +104,9 @@ def build_parser() -> Parser:
     sw.add_argument("--scenario", default="carry", help="carry (default) or paper")
     sw.add_argument("--n", type=int, default=None, help="number of samples (implied by grid axes or --from)")
     sw.add_argument("--vary", action="append", default=[], metavar="NAME=DIST", help="a varied parameter (repeatable)")
-    sw.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a fixed parameter (repeatable)")
     sw.add_argument("--from", dest="from_file", default=None, metavar="TABLE", help="parameter sets from a CSV or Parquet table, one row each")
     sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sw.add_argument("--chunk", type=int, default=16384, help="samples per saved chunk (default 16384)")
-    sw.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
-    sw.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default 1e-3; see docs/model.md on step size)")
-    sw.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
-    sw.add_argument("--x64", action="store_true", help="float64 (default float32)")
     sw.add_argument("--devices", type=int, default=None, help="CPU devices to shard over (default: one per core)")
     sw.add_argument("--out", default="sweep.csv", help="sweep.csv or sweep.parquet (default sweep.csv)")
     sw.add_argument("--resume", action="store_true", help="finish an interrupted sweep with the same options")
@@ -232,7 +230,6 @@ def cmd_simulate(args) -> int:
 
     if args.x64:
         jax.config.update("jax_enable_x64", True)
-    import numpy as np
 
     from coopjax import make_params, simulate
     from coopjax.model import STATE_NAMES

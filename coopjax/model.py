@@ -23,10 +23,6 @@ N_STATE = 2 * len(ROBOT_STATES) + len(BODY_STATES)
 STATE_NAMES = tuple(f"{q}_{r}" for q in ROBOT_STATES for r in "LR") + BODY_STATES
 
 
-def robot_row(name: str, robot: int) -> int:
-    return 2 * ROBOT_STATES.index(name) + robot
-
-
 def sign(batch_ndim: int, dtype):
     """s_i: +1 for robot L (pushes in +x), -1 for robot R, shaped to broadcast over (2, B)."""
     return jnp.array([1.0, -1.0], dtype).reshape((2,) + (1,) * batch_ndim)
@@ -155,7 +151,6 @@ def momentum(params: Params, y: jax.Array) -> jax.Array:
 
 # A single robot on a fixed base pushed by a constant environment effort, with gamma frozen:
 # the harness of the paper's section 2 (Eq. 4-7). It reuses `controller`, the code the full model runs.
-GROUND_STATES = ("x_r", "v_r", "q_c", "x_f", "v_f")
 
 
 def ground_robot_field(params: Params, y, e_env, alpha):

@@ -142,9 +142,6 @@ class SweepSpec(NamedTuple):
     def distributions(self) -> dict[str, Distribution]:
         return {name: parse_distribution(name, text) for name, text in self.vary}
 
-    def varied_names(self) -> list[str]:
-        return [n for n, _ in self.table] + [n for n, _ in self.vary]
-
 
 def make_spec(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard", dt=1e-3, T=None,
               x64=False, table=None) -> SweepSpec:
@@ -269,10 +266,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
     n_chunks = math.ceil(spec.n / chunk)
     n_proc, pid = jax.process_count(), jax.process_index()
     runner = _Runner(spec, devices or jax.local_devices())
-    dists = spec.distributions()
-    table = {k: np.asarray(v) for k, v in spec.table}
-
-    check_values(spec)  # before anything is written
+    values = sample_values(spec)  # drawn and checked once, before anything is written
     done = np.zeros(n_chunks, bool)
     if parts is not None:
         done = _prepare_parts(parts, spec, chunk, resume, n_chunks) if pid == 0 else done
@@ -292,10 +286,8 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
         mine = round_chunks[pid] if pid < len(round_chunks) else None
         local = np.full((chunk, len(METRICS)), np.nan)
         if mine is not None:
-            index = np.arange(mine * chunk, min((mine + 1) * chunk, spec.n))
-            values = {k: v[index] for k, v in table.items()}
-            values.update(draw(dists, index, spec.seed))
-            local[: len(index)] = runner(values)
+            rows = slice(mine * chunk, min((mine + 1) * chunk, spec.n))
+            local[: rows.stop - rows.start] = runner({k: v[rows] for k, v in values.items()})
         if n_proc > 1:
             from jax.experimental import multihost_utils
 
@@ -314,40 +306,35 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
     if len(results) < n_chunks:  # a non-zero process on resume: only process 0 holds saved chunks
         return None
     metrics = np.concatenate([results[k] for k in range(n_chunks)])
-    index = np.arange(spec.n)
-    columns = {"sample": index}
-    columns.update({k: v for k, v in table.items()})
-    columns.update(draw(dists, index, spec.seed))
+    columns = {"sample": np.arange(spec.n), **values}
     for j, name in enumerate(METRICS):
         columns[name] = metrics[:, j]
     columns["finite"] = columns["finite"] > 0.5
     return columns
 
 
-def check_values(spec: SweepSpec, block: int = 1 << 20) -> None:
-    """Every sample's varied values obey the parameter's sign rule, or a ValueError says which not."""
-    dists = spec.distributions()
+def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
+    """Every sample's varied values (from --from, then --vary), checked against each parameter's
+    sign rule; a ValueError names the first offending sample. Cheap: one hash per value."""
     sources = {name: f"--vary {name}={text}" for name, text in spec.vary}
     sources.update({name: "--from" for name, _ in spec.table})
-    table = {k: np.asarray(v) for k, v in spec.table}
-    for start in range(0, spec.n, block):
-        index = np.arange(start, min(start + block, spec.n))
-        values = {k: v[index] for k, v in table.items()}
-        values.update(draw(dists, index, spec.seed))
-        for name, v in values.items():
-            spec_ = PARAMETERS[split_name(name)[0]]
-            bad = ~np.isfinite(v)
-            if spec_.check == "positive":
-                bad |= v <= 0
-            elif spec_.check == "nonnegative":
-                bad |= v < 0
-            if bad.any():
-                i = int(np.flatnonzero(bad)[0])
-                raise ValueError(
-                    f"{sources[name]} gives {name} = {v[i]:g} at sample {start + i}, but {name} must be "
-                    f"{'finite' if spec_.check == 'finite' else spec_.check}: choose a distribution that stays in range "
-                    "(e.g. loguniform)"
-                )
+    values = {k: np.asarray(v, np.float64) for k, v in spec.table}
+    values.update(draw(spec.distributions(), np.arange(spec.n), spec.seed))
+    for name, v in values.items():
+        rule = PARAMETERS[split_name(name)[0]].check
+        bad = ~np.isfinite(v)
+        if rule == "positive":
+            bad |= v <= 0
+        elif rule == "nonnegative":
+            bad |= v < 0
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"{sources[name]} gives {name} = {v[i]:g} at sample {i}, but {name} must be "
+                f"{'finite' if rule == 'finite' else rule}: choose a distribution that stays in range "
+                "(e.g. loguniform)"
+            )
+    return values
 
 
 def _part_path(parts: str, k: int) -> str:
