@@ -78,7 +78,7 @@ def build_parser() -> Parser:
         help="fix a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; "
         "`coopjax params` lists the names)",
     )
-    common.add_argument("--switch", default="hard", help="hard (default), smooth or straight_through")
+    common.add_argument("--switch", default="hard", help="hard (default), smooth, blend or straight_through")
     common.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default 1e-3; see docs/model.md on step size)")
     common.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
     common.add_argument("--x64", action="store_true", help="float64 (default: float32)")
@@ -123,6 +123,9 @@ def build_parser() -> Parser:
     ps.add_argument("--color", default=None, help="column for the colour scale")
     ps.add_argument("--out", default="sweep.png", help="figure file (default sweep.png)")
 
+    from tuning.cli import add_parser as add_tune_parser
+
+    add_tune_parser(sub, check_output)
     sub.add_parser("params", help="list every parameter with its default, unit and meaning")
     return parser
 
@@ -308,6 +311,10 @@ def main(argv=None) -> int:
             return cmd_sweep(args)
         if args.command == "plot-sweep":
             return cmd_plot_sweep(args)
+        if args.command == "tune":
+            from tuning.cli import cmd_tune
+
+            return cmd_tune(args, check_output)
         return cmd_simulate(args)
     except (BadInput, ValueError) as error:
         print(f"coopjax: error: {error}", file=sys.stderr)

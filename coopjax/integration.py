@@ -194,7 +194,8 @@ def simulate(
     Args:
       params: from `make_params`; unbatched or with batch shape (B,).
       scenario: "paper" or "carry" (MODEL.md section 5).
-      switch: "hard" (the reference), "smooth" or "straight_through" (MODEL.md section 4).
+      switch: "hard" (the reference), "smooth" or "straight_through" (MODEL.md section 4), or "blend"
+        (the switch-off and switch-on fields mixed by the smooth switch; see docs/tuning.md).
       contact: "unilateral" (default) or "bilateral".
       dt: RK4 step, s. Checked against the fastest mode of the linearised loop (`check_dt`).
       T: horizon, s; default the scenario's.

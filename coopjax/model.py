@@ -49,12 +49,12 @@ def init_state(params: Params) -> jax.Array:
 class Options(NamedTuple):
     """Static modelling choices (not arrays). Changing one retraces."""
 
-    switch: str = "hard"  # "hard" | "smooth" | "straight_through"
+    switch: str = "hard"  # "hard" | "smooth" | "blend" | "straight_through"
     contact: str = "unilateral"  # "unilateral" | "bilateral"
     gamma_min: float | None = None  # optional floor on gamma; MODEL.md leaves gamma unclipped
 
 
-SWITCHES = ("hard", "smooth", "straight_through")
+SWITCHES = ("hard", "smooth", "blend", "straight_through")
 CONTACTS = ("unilateral", "bilateral")
 
 
@@ -111,16 +111,41 @@ def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: O
     delta_dot = s * (st["v_r"] - v_o)
     F = surrogates.contact_force(p, delta, delta_dot, options)
 
-    # Gain modulation, Eq. 8 and 9 (the -(1-w) rho Z term realises the restart at each switch-on).
+    v_cmd, a_cmd, x_ref = scenario.command(p, t)
     w = surrogates.switch(p, F, options)
+    if options.switch != "blend":
+        return switched_field(p, st, s, F, w, v_cmd, a_cmd, x_ref, options)
+    # Blend: the convex combination of the switch-off and switch-on fields, weighted by the smooth
+    # switch. The field is nonlinear in w (gamma sits in the controller's denominator, and a_ref has a
+    # (1 - w)^2 term), so substituting a fractional w ("smooth") slides along F = F_lim differently
+    # from the hard switch. The convex combination keeps the Filippov sliding motion that the hard
+    # model's chatter averages to, as the width k_F goes to 0. The switch-on field is only meaningful
+    # for F >= F_lim (far below it gamma would exceed 1 and the controller's denominator can vanish),
+    # so within the sigmoid's tail below F_lim it is taken at the surface value of gamma.
+    one = jnp.ones_like(w)
+    dy_off, aux_off = switched_field(p, st, s, F, 0.0 * one, v_cmd, a_cmd, x_ref, options)
+    dy_on, aux_on = switched_field(p, st, s, F, one, v_cmd, a_cmd, x_ref, options, jnp.maximum(F, p.F_lim))
+    off, on = unpack(dy_off), unpack(dy_on)
+    # Each robot's rows blend with its own w; the body's rows do not depend on w.
+    dy = pack({**off, **{q: off[q] + w * (on[q] - off[q]) for q in ROBOT_STATES}})
+    aux = jax.tree_util.tree_map(lambda a, b: a + w * (b - a), aux_off, aux_on)
+    return dy, aux._replace(F=F, w=w, x_ref=x_ref)
+
+
+def switched_field(p: Params, st, s, F, w, v_cmd, a_cmd, x_ref, options: Options, F_gain=None):
+    """The rest of the field once the contact force F and the switch value w are known.
+
+    `F_gain` is the force that modulates gamma (default F); the blend surrogate clamps it.
+    """
+    # Gain modulation, Eq. 8 and 9 (the -(1-w) rho Z term realises the restart at each switch-on).
     Z = st["Z"]
-    gamma = 1.0 - w * (p.K_ini + p.K_GP * (F - p.F_lim) + p.K_GI * Z)
+    F_gain = F if F_gain is None else F_gain
+    gamma = 1.0 - w * (p.K_ini + p.K_GP * (F_gain - p.F_lim) + p.K_GI * Z)
     if options.gamma_min is not None:
         gamma = jnp.maximum(gamma, options.gamma_min)
     dZ = w * (F - p.F_lim) - p.tau * Z - (1.0 - w) * p.rho * Z
 
     # Amnesia recovery, Eq. 10 and 11: only while force control is off.
-    v_cmd, a_cmd, x_ref = scenario.command(p, t)
     Y_e = st["Y_e"]
     dY_e = (1.0 - w) * (x_ref - st["x_r"]) - p.tau_e * Y_e - w * p.rho * Y_e
     v_ref = v_cmd + (1.0 - w) * p.G_e * Y_e

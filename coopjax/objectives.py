@@ -20,7 +20,8 @@ SLIP, CRUSH, LAG_SQ = 0, 1, 2
 MIN = slice(3, 5)  # per-robot minimum force over the grip window
 PEAK = slice(5, 7)  # per-robot peak force over the whole run
 REACHED = slice(7, 9)  # per-robot flag: force has reached F_lim at least once
-N_ACC = 9
+IMPACT = 9
+N_ACC = 10
 
 
 class Window(NamedTuple):
@@ -29,6 +30,7 @@ class Window(NamedTuple):
     grip: tuple[int, int]
     lag: tuple[int, int]
     after_reach: bool
+    n_steps: int
 
     @property
     def n_grip(self) -> int:
@@ -37,6 +39,11 @@ class Window(NamedTuple):
     @property
     def n_lag(self) -> int:
         return max(0, self.lag[1] - self.lag[0] + 1)
+
+    @property
+    def n_after(self) -> int:
+        """Samples after the grip window, up to and including t = T."""
+        return max(0, self.n_steps - self.grip[1])
 
 
 def window(scenario: Scenario, dt: float, n_steps: int) -> Window:
@@ -47,7 +54,7 @@ def window(scenario: Scenario, dt: float, n_steps: int) -> Window:
         k1 = min(n_steps, math.floor(t1 / dt + 1e-9))
         return (k0, k1)
 
-    return Window(bounds(*scenario.grip_window), bounds(*scenario.lag_window), scenario.after_reach)
+    return Window(bounds(*scenario.grip_window), bounds(*scenario.lag_window), scenario.after_reach, n_steps)
 
 
 class Metrics(NamedTuple):
@@ -58,6 +65,7 @@ class Metrics(NamedTuple):
     slip: jax.Array  # N^2: mean over the grip window of sum_i max(0, F_lim - F_i)^2
     crush: jax.Array  # N^2: mean over the grip window of sum_i max(0, F_i - F_max)^2
     rms_lag: jax.Array  # m: RMS of x_ref - x_r over the lag window and both robots
+    impact: jax.Array  # N^2: as crush, but over the rest of the run after the grip window (release)
     finite: jax.Array  # bool: the run stayed finite and below the force bound
     t_diverged: jax.Array  # s: when it stopped being so (NaN if it never did)
 
@@ -82,12 +90,15 @@ def accumulate(acc, F, x_ref, x_r, params, k, win: Window):
     crush = jnp.where(counted, jnp.maximum(F - params.F_max[None], 0.0) ** 2, zero).sum(0)
     in_lag = ((k >= win.lag[0]) & (k <= win.lag[1])).astype(F.dtype)
     lag_sq = in_lag * ((x_ref - x_r) ** 2).sum(0)
+    after = (k > win.grip[1]).astype(F.dtype)
+    impact = after * (jnp.maximum(F - params.F_max[None], 0.0) ** 2).sum(0)
     return jnp.concatenate(
         [
             jnp.stack([acc[SLIP] + slip, acc[CRUSH] + crush, acc[LAG_SQ] + lag_sq]),
             jnp.where(counted, jnp.minimum(acc[MIN], F), acc[MIN]),
             jnp.maximum(acc[PEAK], F),
             reached,
+            (acc[IMPACT] + impact)[None],
         ]
     )
 
@@ -112,6 +123,7 @@ def finalize(acc, win: Window, diverged, t_diverged) -> Metrics:
         slip=guard(mean(acc[SLIP], win.n_grip)),
         crush=guard(mean(acc[CRUSH], win.n_grip)),
         rms_lag=guard(jnp.sqrt(mean(acc[LAG_SQ], 2 * win.n_lag))),
+        impact=guard(mean(acc[IMPACT], win.n_after)),
         finite=~diverged,
         t_diverged=jnp.where(diverged, t_diverged, nan),
     )

@@ -20,7 +20,7 @@ def switch(p, F, options):
     if options.switch == "hard":
         return (F >= p.F_lim).astype(F.dtype)
     smooth = jax.nn.sigmoid((F - p.F_lim) / p.k_F[None])
-    if options.switch == "smooth":
+    if options.switch in ("smooth", "blend"):
         return smooth
     return _straight_through((F >= p.F_lim).astype(F.dtype), smooth)
 
@@ -36,6 +36,6 @@ def contact_force(p, delta, delta_dot, options):
         return hard
     k_c, eps_delta = p.k_c[None], p.eps_delta[None]  # shared widths over the robot axis
     smooth = k_c * jax.nn.softplus(kelvin / k_c) * jax.nn.sigmoid(delta / eps_delta)
-    if options.switch == "smooth":
+    if options.switch in ("smooth", "blend"):
         return smooth
     return _straight_through(hard, smooth)

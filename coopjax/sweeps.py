@@ -226,10 +226,11 @@ class _Runner:
 
 
 class Progress:
-    """A one-line progress bar on stderr with samples per second."""
+    """A one-line progress bar on stderr with its rate and an ETA."""
 
-    def __init__(self, total: int, enabled: bool = True):
+    def __init__(self, total: int, enabled: bool = True, label: str = "sweep", unit: str = "samples"):
         self.total, self.done, self.enabled = total, 0, enabled
+        self.label, self.unit = label, unit
         self.start = time.perf_counter()
         self.tty = sys.stderr.isatty()
         self.last_line = -1.0
@@ -243,7 +244,8 @@ class Progress:
         frac = self.done / self.total
         bar = "#" * int(30 * frac)
         eta = (self.total - self.done) / rate if rate > 0 else float("inf")
-        line = f"sweep [{bar:<30}] {self.done}/{self.total} samples, {rate:,.0f} samples/s, eta {eta:,.0f} s"
+        line = (f"{self.label} [{bar:<30}] {self.done}/{self.total} {self.unit}, {rate:,.{0 if rate >= 10 else 2}f} "
+                f"{self.unit}/s, eta {eta:,.0f} s")
         if self.tty:
             print("\r" + line, end="" if self.done < self.total else "\n", file=sys.stderr, flush=True)
         elif frac - self.last_line >= 0.1 or self.done == self.total:

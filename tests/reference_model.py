@@ -1,4 +1,4 @@
-"""An independent NumPy transcription of MODEL.md sections 3-5 (smooth mode), for solve_ivp.
+"""An independent NumPy transcription of MODEL.md sections 3-5 (smooth and blend modes), for solve_ivp.
 
 Written from the specification, not from coopjax's code: scalar per-robot loops, the e_c solve done
 as an explicit 3x3 linear system, its own command profiles.
@@ -45,32 +45,43 @@ def force(p, delta, delta_dot):
     return p["k_c"] * softplus(kelvin / p["k_c"]) * sigmoid(delta / p["eps_delta"])
 
 
-def rhs(t, y, scenario, p=TABLE1):
+def robot_rates(p, s, yi, F, w, F_gain, v_cmd, a_cmd, x_ref):
+    """The nine per-robot rates once the contact force F and the switch value w are fixed."""
+    x_r, v_r, x_v, v_v, q_c, x_f, v_f, Z, Y_e = yi
+    gamma = 1 - w * (p["K_ini"] + p["K_GP"] * (F_gain - p["F_lim"]) + p["K_GI"] * Z)
+    dY = (1 - w) * (x_ref - x_r) - p["tau_e"] * Y_e - w * p["rho"] * Y_e
+    v_ref = v_cmd + (1 - w) * p["G_e"] * Y_e
+    a_ref = a_cmd + (1 - w) * p["G_e"] * dY
+    g = (1 - gamma) * p["beta_H"]
+    err = v_ref - v_r - g * v_f
+    # Unknowns (e_c, a_r, a_f):
+    #   e_c + M_c a_r + M_c g a_f = M_c a_ref + R_c err + K_c q_c
+    #   -mu_H e_c + M_r a_r       = -s F
+    #   -e_c + M_f a_f            = -(R_f v_f + K_f x_f)
+    M = np.array([[1.0, p["M_c"], p["M_c"] * g], [-p["mu_H"], p["M_r"], 0.0], [-1.0, 0.0, p["M_f"]]])
+    rhs_vec = np.array([p["M_c"] * a_ref + p["R_c"] * err + p["K_c"] * q_c, -s * F, -(p["R_f"] * v_f + p["K_f"] * x_f)])
+    e_c, a_r, a_f = np.linalg.solve(M, rhs_vec)
+    return np.array([v_r, a_r, v_v, -p["mu_H"] * e_c / p["M_v"], err, v_f, a_f,
+                     w * (F - p["F_lim"]) - p["tau"] * Z - (1 - w) * p["rho"] * Z, dY])
+
+
+def rhs(t, y, scenario, p=TABLE1, switch="smooth"):
     # y: per robot [x_r, v_r, x_v, v_v, q_c, x_f, v_f, Z, Y_e] for L then R, then x_o, v_o.
     x_o, v_o = y[18], y[19]
     dy = np.zeros(20)
     forces = []
     for i, s in enumerate((1.0, -1.0)):
-        x_r, v_r, x_v, v_v, q_c, x_f, v_f, Z, Y_e = y[i * 9:(i + 1) * 9]
-        F = force(p, s * (x_r - x_o), s * (v_r - v_o))
+        yi = y[i * 9:(i + 1) * 9]
+        F = force(p, s * (yi[0] - x_o), s * (yi[1] - v_o))
         forces.append(F)
         w = sigmoid((F - p["F_lim"]) / p["k_F"])
-        gamma = 1 - w * (p["K_ini"] + p["K_GP"] * (F - p["F_lim"]) + p["K_GI"] * Z)
-        v_cmd, a_cmd, x_ref = command(scenario, i, t)
-        dY = (1 - w) * (x_ref - x_r) - p["tau_e"] * Y_e - w * p["rho"] * Y_e
-        v_ref = v_cmd + (1 - w) * p["G_e"] * Y_e
-        a_ref = a_cmd + (1 - w) * p["G_e"] * dY
-        g = (1 - gamma) * p["beta_H"]
-        err = v_ref - v_r - g * v_f
-        # Unknowns (e_c, a_r, a_f):
-        #   e_c + M_c a_r + M_c g a_f = M_c a_ref + R_c err + K_c q_c
-        #   -mu_H e_c + M_r a_r       = -s F
-        #   -e_c + M_f a_f            = -(R_f v_f + K_f x_f)
-        M = np.array([[1.0, p["M_c"], p["M_c"] * g], [-p["mu_H"], p["M_r"], 0.0], [-1.0, 0.0, p["M_f"]]])
-        rhs_vec = np.array([p["M_c"] * a_ref + p["R_c"] * err + p["K_c"] * q_c, -s * F, -(p["R_f"] * v_f + p["K_f"] * x_f)])
-        e_c, a_r, a_f = np.linalg.solve(M, rhs_vec)
-        dy[i * 9:(i + 1) * 9] = [v_r, a_r, v_v, -p["mu_H"] * e_c / p["M_v"], err, v_f, a_f,
-                                 w * (F - p["F_lim"]) - p["tau"] * Z - (1 - w) * p["rho"] * Z, dY]
+        command_i = command(scenario, i, t)
+        if switch == "smooth":
+            dy[i * 9:(i + 1) * 9] = robot_rates(p, s, yi, F, w, F, *command_i)
+        else:  # blend: w-weighted mix of the switch-off and switch-on fields (on-field gamma at F >= F_lim)
+            off = robot_rates(p, s, yi, F, 0.0, F, *command_i)
+            on = robot_rates(p, s, yi, F, 1.0, max(F, p["F_lim"]), *command_i)
+            dy[i * 9:(i + 1) * 9] = (1 - w) * off + w * on
     dy[18] = v_o
     dy[19] = (forces[0] - forces[1]) / p["M_b"]
     return dy, forces

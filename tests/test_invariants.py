@@ -7,7 +7,7 @@ import coopjax as cj
 from coopjax import model
 
 
-@pytest.mark.parametrize("switch", ["hard", "smooth"])
+@pytest.mark.parametrize("switch", ["hard", "smooth", "blend"])
 def test_total_momentum_is_conserved_over_carry(switch):
     params = cj.make_params(M_b=2.5, M_v_L=7.0, M_r_R=1.5, K_GP_L=0.8)
     sol = cj.simulate(params, "carry", switch=switch, every=5)

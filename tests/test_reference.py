@@ -26,6 +26,23 @@ def test_smooth_model_agrees_with_scipy_radau(scenario, T, dt):
     np.testing.assert_allclose(np.asarray(sol.y_final), y_ref, rtol=1e-4, atol=1e-4 * np.abs(y_ref).max())
 
 
+def test_blend_model_agrees_with_scipy_radau():
+    """The blend surrogate (tuning's default) against the reference's own blend, over grip and carry."""
+    gains = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0, M_b=2.0)
+    dt, T = 1e-4, 2.0
+    sol = cj.simulate(cj.make_params(**gains), "carry", switch="blend", dt=dt, T=T, every=100)
+    t = np.asarray(sol.trajectory.t)
+    ours = np.asarray(sol.trajectory.aux.F)
+    p = {**ref.TABLE1, **gains}
+    reference = solve_ivp(lambda t, y: ref.rhs(t, y, "carry", p, "blend")[0], (0.0, T), np.zeros(20),
+                          method="Radau", t_eval=t, rtol=1e-10, atol=1e-12)
+    assert reference.success, reference.message
+    theirs = np.array([ref.rhs(tk, yk, "carry", p, "blend")[1] for tk, yk in zip(reference.t, reference.y.T)])
+    assert theirs.max() > 20.0  # the carry really loads the pushing gripper
+    error = np.max(np.abs(ours - theirs)) / np.max(np.abs(theirs))
+    assert error < 1e-4, error
+
+
 def test_rk4_converges_with_order_four():
     # Wider surrogates keep the loop smooth enough to be in RK4's asymptotic regime; steps of
     # 1/2^k put the profile's kinks (t = 1 s) on step boundaries.
