@@ -40,3 +40,17 @@ def test_forward_mode_matches_finite_differences_and_reverse(reference):
     jac = np.asarray(jax.jacfwd(objective)(jnp.asarray(theta)))
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
     assert np.all(np.abs(fd) > 0)  # each gain really moves the objective
+
+
+def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
+    def compiled(checkpoint, T):
+        f = lambda k: cj.loss(cj.simulate(cj.make_params(K_GP=k, M_b=jnp.ones(4)), "carry", switch="smooth", dt=1e-3,
+                                          T=T, checkpoint=checkpoint, check_dt=False).metrics).mean()
+        return jax.jit(jax.grad(f)).lower(0.5).compile()
+
+    memory = {(c, T): compiled(c, T).memory_analysis().temp_size_in_bytes for c in (True, "nested") for T in (1.0, 4.0)}
+    assert 3.5 < memory[True, 4.0] / memory[True, 1.0] < 4.5  # one carry per step: linear
+    assert memory["nested", 4.0] / memory["nested", 1.0] < 2.5  # sqrt(4) = 2
+    assert memory["nested", 4.0] < memory[True, 4.0] / 5
+    step, nested = (float(compiled(c, 4.0)(0.5)) for c in (True, "nested"))
+    assert nested == pytest.approx(step, rel=1e-5)  # the same gradient, up to the order of operations

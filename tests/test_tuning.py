@@ -95,6 +95,27 @@ def test_a_non_finite_step_is_rejected_and_retried_with_half_the_move(objective,
     assert any("rejected" in line for line in lines)
 
 
+def test_a_batch_that_stays_non_finite_is_skipped_at_the_last_good_gains(objective, monkeypatch):
+    real = opt.value_and_grad_fn(objective, "forward")
+    calls = []
+
+    def poisoned(objective, mode):
+        def vg(theta, masses, widths, base):
+            calls.append(np.asarray(theta))
+            loss, grad, metrics = real(theta, masses, widths, base)
+            bad = 2 <= len(calls) <= 2 + objective_retries  # the whole of step 1, every halving included
+            return (jnp.nan * loss if bad else loss), grad, metrics
+        return vg
+
+    objective_retries = opt.TuneConfig().max_retries
+    monkeypatch.setattr(opt, "value_and_grad_fn", poisoned)
+    config = opt.TuneConfig(objective=objective, batch=2, steps=3, learning_rate=0.3)
+    state = opt.tune(config, BASE, log=lambda s: None, check_gradient=False)
+    assert np.isnan(state.history["loss"][1]) and np.isfinite(state.history["loss"][2])
+    np.testing.assert_array_equal(calls[-1], calls[0])  # step 2 starts again from the last good gains
+    assert state.history["rejected"][1] == objective_retries + 1
+
+
 def test_non_finite_loss_at_the_start_stops_with_a_clear_error(objective):
     config = opt.TuneConfig(objective=objective, batch=2, steps=2, start=(("K_GP", 100.0), ("K_GI", 0.1),
                                                                         ("tau", 1.25), ("G_e", 600.0)))

@@ -32,12 +32,15 @@ class Trace:
     """Best-so-far training loss against trajectories used and wall time."""
 
     def __init__(self):
-        self.trajectories, self.wall, self.best, self.thetas = [], [], [], []
+        self.trajectories, self.wall, self.best = [], [], []
+        self.all_thetas, self.all_losses = [], []
         self.start = time.perf_counter()
         self._best, self._theta = np.inf, None
 
     def record(self, thetas: np.ndarray, losses: np.ndarray, trajectories: int):
         losses = np.where(np.isfinite(losses), losses, np.inf)  # a diverged candidate is simply bad
+        self.all_thetas += list(np.asarray(thetas))
+        self.all_losses += list(losses)
         i = int(np.argmin(losses))
         if losses[i] < self._best:
             self._best, self._theta = float(losses[i]), np.asarray(thetas[i])
@@ -48,6 +51,11 @@ class Trace:
     @property
     def theta(self) -> np.ndarray:
         return self._theta
+
+    def top(self, k: int) -> list[np.ndarray]:
+        """The k candidates with the lowest training loss, best first."""
+        order = np.argsort(self.all_losses, kind="stable")[:k]
+        return [self.all_thetas[i] for i in order]
 
     def as_dict(self) -> dict:
         return {"trajectories": self.trajectories, "wall": self.wall, "loss": self.best}

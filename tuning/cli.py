@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 
 import numpy as np
@@ -43,6 +44,7 @@ def add_parser(sub, check_output):
     p.add_argument("--no-anneal", dest="anneal", action="store_false", help="keep the narrow surrogate widths from the start")
     p.add_argument("--dt", type=float, default=d.objective.dt, help=f"training RK4 step in s (default {d.objective.dt:g})")
     p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"hard-model step for judging (default {JUDGE_DT:g})")
+    p.add_argument("--select", type=int, default=20, help="judge the last N iterates on validation masses and keep the best (default 20; 1 = the final iterate)")
     p.add_argument("--held-out", type=int, default=12, help="held-out masses for judging (default 12, ends included)")
     p.add_argument("--aggregate", default="mean", help="mean (default) or smoothmax over the mass batch")
     p.add_argument("--temperature", type=float, default=20.0, help="softness of smoothmax, in loss units (default 20)")
@@ -81,6 +83,8 @@ def build(args):
         raise ValueError(f"--scenario {args.scenario!r}: tuning is defined on the carry scenario only (MODEL.md section 7)")
     names = check_tuned_names(_parse_list(args.params, "--params"))
     masses = parse_masses(args.masses)
+    if args.select < 1:
+        raise ValueError(f"--select is {args.select}: at least 1 (the final iterate)")
     if args.held_out < 2:
         raise ValueError(f"--held-out is {args.held_out}: judge on at least 2 masses (the lightest and the heaviest)")
     for flag in ("judge_dt", "dt"):
@@ -130,9 +134,15 @@ def cmd_tune(args, check_output) -> int:
     files = paths(args.out)
     if os.path.exists(files["checkpoint"]) and not args.resume:
         raise ValueError(f"{files['checkpoint']} holds an interrupted run: add --resume to finish it, or delete it")
-    if args.pareto:
-        return _pareto(args, config, base, held_out, files)
-    return _tune_and_report(args, config, base, held_out, files)
+    from tuning.optimize import Rejected
+
+    try:
+        if args.pareto:
+            return _pareto(args, config, base, held_out, files)
+        return _tune_and_report(args, config, base, held_out, files)
+    except Rejected as error:  # not bad input: the run itself went non-finite
+        print(f"coopjax tune: error: {error}", file=sys.stderr)
+        return 1
 
 
 def _log(args):
@@ -140,14 +150,14 @@ def _log(args):
 
 
 def _tune_and_report(args, config, base, held_out, files) -> int:
-    from tuning.objective import from_log, judge
+    from tuning.objective import judge
     from tuning.optimize import tune
 
     log = print  # the gradient check and rejections are always shown
     start = time.perf_counter()
     state = tune(config, base, checkpoint=files["checkpoint"], resume=args.resume, log=log, progress=args.quiet)
-    tuned = from_log(state.theta, config.objective.names)
     start_gains = dict(config.start)
+    tuned, selection = _select_iterate(args, config, base, state)
     print(f"judging with the hard model, float64, dt = {args.judge_dt:g} s, on {len(held_out)} held-out masses "
           f"from {held_out[0]:.3g} to {held_out[-1]:.3g} kg ...")
     before, after = judge([start_gains, tuned], held_out, base, config.objective.weights, args.judge_dt)
@@ -164,9 +174,10 @@ def _tune_and_report(args, config, base, held_out, files) -> int:
         "history": state.history,
         "trajectories": state.trajectories,
         "tuning_seconds": state.elapsed,
+        "selection": selection,
     }
     if args.compare:
-        result["compare"] = _compare(args, config, base, held_out, state, files)
+        result["compare"] = _compare(args, config, base, held_out, state, tuned, files)
     _write_json(files["out"], result)
     _plots(config, base, held_out, start_gains, tuned, state, files, args.judge_dt)
     os.remove(files["checkpoint"])
@@ -175,6 +186,40 @@ def _tune_and_report(args, config, base, held_out, files) -> int:
     print(f"wrote {files['out']}, {files['loss']} and {files['traces']}"
           + (f" and {files['compare']}" if args.compare else ""))
     return 0
+
+
+def iterates(state, names, last: int) -> list[dict]:
+    """The final iterate and the `last` - 1 before it whose loss was finite (newest first)."""
+    from tuning.objective import from_log
+
+    h = state.history
+    out = [from_log(state.theta, names)]
+    for i in range(len(h["loss"]) - 1, -1, -1):
+        if len(out) >= last:
+            break
+        if np.isfinite(h["loss"][i]):
+            out.append({n: h[n][i] for n in names})
+    return out
+
+
+def _select_iterate(args, config, base, state):
+    """Pick among the last `--select` iterates with the hard model on validation masses."""
+    from tuning.objective import select, validation_masses
+
+    names = config.objective.names
+    candidates = iterates(state, names, args.select)
+    if len(candidates) == 1:
+        return candidates[0], {"candidates": 1, "chosen": 0}
+    masses = validation_masses(config.training_masses)
+    print(f"selecting among the last {len(candidates)} iterates: hard model on {len(masses)} validation masses "
+          f"({', '.join(f'{m:.3g}' for m in masses)} kg; none of them held out) ...")
+    chosen, verdicts = select(candidates, masses, base, config.objective.weights, args.judge_dt)
+    v = verdicts[chosen]
+    held = sum(x.holds for x in verdicts)
+    print(f"  {held} of {len(candidates)} hold at every validation mass; chose the one {chosen} step(s) before the end "
+          f"(validation: min grip {v.min_grip:.3f} N, peak {v.peak_grip:.1f} N, lag {v.rms_lag * 1e3:.1f} mm)")
+    return candidates[chosen], {"candidates": len(candidates), "chosen_steps_before_end": chosen, "holding": held,
+                                "validation_masses": [float(m) for m in masses], "validation": _row(v)}
 
 
 def _hold_tolerance():
@@ -226,9 +271,9 @@ def _plots(config, base, held_out, start_gains, tuned, state, files, judge_dt):
     plot_traces(runs, ends, float(np.asarray(base.F_lim).min()), float(np.asarray(base.F_max)), files["traces"])
 
 
-def _compare(args, config, base, held_out, state, files) -> dict:
+def _compare(args, config, base, held_out, state, tuned, files) -> dict:
     from tuning.baselines import cma_es, random_gain_sets, random_search
-    from tuning.objective import from_log, judge
+    from tuning.objective import from_log, judge, select, validation_masses
     from tuning.plots import plot_compare
 
     budget = state.trajectories
@@ -243,8 +288,13 @@ def _compare(args, config, base, held_out, state, files) -> dict:
     traces["random search"] = rs.as_dict()
     plot_compare(traces, files["compare"])
     names = config.objective.names
-    finals = {"gradient": from_log(state.theta, names), "CMA-ES": from_log(cm.theta, names),
-              "random search": from_log(rs.theta, names)}
+    # The same hard-model validation picks each tuner's answer from its own candidates: the gradient
+    # tuner's last iterates (done above), and the baselines' best by training loss.
+    masses = validation_masses(config.training_masses)
+    finals = {"gradient": tuned}
+    for name, trace in (("CMA-ES", cm), ("random search", rs)):
+        candidates = [from_log(t, names) for t in trace.top(args.select)]
+        finals[name] = candidates[select(candidates, masses, base, config.objective.weights, args.judge_dt)[0]]
     print(f"judging the {args.random_sets} random gain sets of the issue's aim, hard, on the held-out masses ...")
     reference = random_gain_sets(args.random_sets, config.seed) if names == ("K_GP", "K_GI", "tau", "G_e") else []
     verdicts = judge(list(finals.values()) + reference, held_out, base, config.objective.weights, args.judge_dt,
@@ -283,7 +333,7 @@ def _pareto(args, config, base, held_out, files) -> int:
     import dataclasses
 
     from tuning.baselines import random_gain_sets
-    from tuning.objective import from_log, judge
+    from tuning.objective import judge
     from tuning.optimize import tune
     from tuning.plots import plot_pareto
 
@@ -294,7 +344,7 @@ def _pareto(args, config, base, held_out, files) -> int:
         run = dataclasses.replace(config, objective=objective)
         print(f"-- lag weight {w_lag:g}")
         state = tune(run, base, log=log, check_gradient=False, progress=args.quiet)
-        gains = from_log(state.theta, config.objective.names)
+        gains, _ = _select_iterate(args, run, base, state)
         v = judge(gains, held_out, base, objective.weights, args.judge_dt)
         print(f"   holds {v.holds}, min {v.min_grip:.3f} N, peak {v.peak_grip:.2f} N, lag {v.rms_lag * 1e3:.2f} mm")
         points.append({"w_lag": w_lag, "gains": gains, **_row(v)})

@@ -249,6 +249,24 @@ def judge(gains: dict[str, float] | list[dict[str, float]], masses: np.ndarray, 
     return verdicts if many else verdicts[0]
 
 
+def validation_masses(training_range: tuple[str, float, float], count: int = 6) -> np.ndarray:
+    """A grid over the training range (margin included). Its masses differ from the held-out grid's."""
+    return held_out_masses(training_range, count)
+
+
+def select(candidates: list[dict], masses: np.ndarray, base: Params | None = None, weights: Weights = Weights(),
+           dt: float = JUDGE_DT) -> tuple[int, list[Verdict]]:
+    """The candidate a hard-model validation prefers: it holds the grip at every validation mass, and
+    then has the lowest mean loss. Returns its index and every candidate's verdict.
+
+    This is model selection, not judging: the validation masses are a grid over the training range,
+    never the held-out masses that `judge` reports on.
+    """
+    verdicts = judge(list(candidates), masses, base, weights, dt)
+    key = lambda i: (not verdicts[i].holds, verdicts[i].loss if np.isfinite(verdicts[i].loss) else np.inf)
+    return min(range(len(candidates)), key=key), verdicts
+
+
 def _fixed_from(base: Params | None, tuned: set) -> dict[str, float]:
     """The non-default scalar values of `base` as --set style overrides (tuned names excluded)."""
     if base is None:

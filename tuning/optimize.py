@@ -30,6 +30,7 @@ from tuning.objective import (GAINS, NARROW, WIDE, Objective, Surrogate, draw_ma
 
 MODES = ("forward", "reverse")
 PAPER_GAINS = {n: cj.params.PARAMETERS[n].default for n in GAINS}
+MAX_SKIPS = 3  # consecutive skipped steps before a run gives up
 CHECK_WIDTHS = Surrogate(k_F=1.0, k_c=1.0, eps_delta=5e-4)  # where the loss is smooth on the scale of h
 
 
@@ -202,24 +203,37 @@ def tune(config: TuneConfig, base: Params | None = None, checkpoint: str | None 
         k = state.step
         masses = step_masses(config, state, k)
         widths = jnp.asarray(config.widths(k), jnp.float64)
-        theta, rejected = state.theta, 0
+        theta, rejected, skipped = state.theta, 0, False
         while True:
             loss, grad, _ = vg(jnp.asarray(theta), masses, widths, base)
             state = state._replace(trajectories=state.trajectories + config.batch)
             if np.isfinite(float(loss)) and np.isfinite(np.asarray(grad)).all():
                 break
+            if k == 0:
+                raise Rejected(f"the loss or its gradient is not finite at the starting gains {from_log(theta, names)}; "
+                               "try other starting gains or a smaller training --dt")
             rejected += 1
-            if k == 0 or rejected > config.max_retries:
-                raise Rejected(
-                    f"step {k}: the loss or its gradient is not finite at gains {from_log(theta, names)}"
-                    + (" (the starting gains)" if k == 0 else f", even after {config.max_retries} halvings")
-                    + "; try smaller --lr or a smaller training --dt")
-            move = state.move * 0.5**rejected
-            theta = np.clip(state.theta_prev + move, lo, hi)
+            if rejected > config.max_retries or not np.any(state.move):
+                skipped = True
+                break
+            theta = np.clip(state.theta_prev + state.move * 0.5**rejected, lo, hi)
             log(f"step {k}: loss or gradient not finite; move rejected, retrying with it halved "
                 f"({rejected}/{config.max_retries}) at {_fmt_gains(from_log(theta, names))}")
-        updates, opt_state = optimizer.update(grad, state.opt_state, jnp.asarray(theta))
-        theta_next = np.clip(theta + np.asarray(updates), lo, hi)
+        if skipped:
+            # Even the last good iterate fails on this batch of masses: the batch, not the move, is
+            # the trouble. Keep the last good iterate, apply nothing, and go on to the next batch.
+            run_of_skips = 1 + next((i for i, x in enumerate(reversed(state.history["loss"])) if np.isfinite(x)),
+                                    len(state.history["loss"]))
+            if run_of_skips >= MAX_SKIPS:
+                raise Rejected(f"step {k}: {MAX_SKIPS} steps in a row are not finite even at the last good gains "
+                               f"{_fmt_gains(from_log(state.theta_prev, names))}; try smaller --lr or a smaller "
+                               "training --dt (the checkpoint keeps the last good step for --resume)")
+            log(f"step {k}: not finite even after halving; this batch is skipped and the gains stay at the last good iterate")
+            theta = theta_next = state.theta_prev
+            opt_state, loss = state.opt_state, float("nan")
+        else:
+            updates, opt_state = optimizer.update(grad, state.opt_state, jnp.asarray(theta))
+            theta_next = np.clip(theta + np.asarray(updates), lo, hi)
         elapsed = time.perf_counter() - session_start
         h = state.history
         for name, value in (("step", k), ("loss", float(loss)), ("trajectories", state.trajectories),

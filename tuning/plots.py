@@ -32,7 +32,7 @@ def plot_loss(history: dict, path: str, title: str) -> None:
     if rejected.any():
         ax.semilogy(steps[rejected], np.asarray(history["loss"])[rejected], "rx", ms=8, label="after a rejected move")
     ax.set_xlabel("step")
-    ax.set_ylabel("loss (slip, crush and lag terms, weighted)")
+    ax.set_ylabel("loss (slip, crush, lag and impact, weighted)")
     ax.set_title(title)
     twin = ax.twinx()
     twin.plot(steps, history["k_F"], color="grey", ls=":", label="switch width k_F [N]")

@@ -1,0 +1,322 @@
+"""coopjax against what a user would otherwise write, on this machine: `python -m benchmarks [--quick]`.
+
+Writes benchmarks/results.json and benchmarks/scaling.png, and prints a table. The carry scenario
+(MODEL.md section 5) at dt = 1e-3 s, T = 4 s. Before any timing counts, every baseline is checked
+against coopjax's forces in float64 (smooth switch with wide widths over the whole carry, hard
+switch over the first 0.25 s, before the hard loop starts to chatter and amplify round-off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+TOLERANCE = 1e-6  # relative, float64, for the RK4 baselines
+LSODA_RTOL = 1e-8
+LSODA_TOLERANCE = 1e-3  # relative: LSODA's own error at this rtol (see accuracy())
+
+
+def machine() -> dict:
+    info = dict(python=platform.python_version(), platform=platform.platform(), cores=os.cpu_count())
+    model, mhz, flags = platform.processor() or platform.machine(), None, set()
+    try:
+        for line in open("/proc/cpuinfo"):
+            key, _, value = line.partition(":")
+            key = key.strip()
+            if key == "model name":
+                model = value.strip()
+            elif key == "cpu MHz" and mhz is None:
+                mhz = float(value)
+            elif key == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    info.update(cpu=model, mhz=mhz)
+    # Peak: cores x clock x FLOPs per cycle. Two 256-bit FMA pipes (AVX2 + FMA, e.g. AMD Zen, Intel
+    # since Haswell) give 16 float64 / 32 float32 FLOPs per cycle. An estimate, stated as such.
+    if mhz and {"avx2", "fma"} <= flags:
+        info["peak_gflops_estimate"] = {"float64": os.cpu_count() * mhz / 1e3 * 16,
+                                        "float32": os.cpu_count() * mhz / 1e3 * 32}
+        info["peak_basis"] = "cores x cpu MHz x (16 float64 | 32 float32) FLOPs/cycle: two 256-bit FMA pipes"
+    import jax
+    import scipy
+
+    info.update(jax=jax.__version__, numpy=np.__version__, scipy=scipy.__version__)
+    try:
+        import numba
+
+        info["numba"] = numba.__version__
+    except ImportError:
+        info["numba"] = None
+    return info
+
+
+def run_child(devices: int, args, extras: bool) -> dict:
+    from coopjax.cli import FAST_XLA_FLAG
+
+    cmd = [sys.executable, "-m", "benchmarks.coopjax_child", "--devices", str(devices), "--Bs", args.Bs,
+           "--repeats", str(args.repeats), "--T", str(args.T)] + (["--extras"] if extras else []) + (
+        ["--quick"] if args.quick else [])
+    env = dict(os.environ)
+    # The coopjax command's own XLA setting (docs in coopjax/cli.py), unless the user set XLA_FLAGS.
+    if "xla_cpu_use_fusion_emitters" not in env.get("XLA_FLAGS", ""):
+        import jax
+
+        if jax.__version__.startswith("0.10."):
+            env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + FAST_XLA_FLAG).strip()
+    print(f"coopjax on {devices} device(s) ...", flush=True)
+    proc = subprocess.run(cmd, cwd=os.path.dirname(HERE), env=env, stdout=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"benchmark child failed ({proc.returncode})")
+    lines = proc.stdout.strip().splitlines()
+    for line in lines[:-1]:
+        print(line)
+    return json.loads(lines[-1])
+
+
+def table1() -> dict:
+    import coopjax as cj
+    from benchmarks.implementations import PER_ROBOT, SHARED
+
+    return {n: cj.params.PARAMETERS[n].default for n in PER_ROBOT + SHARED}
+
+
+def accuracy(numba_rk4) -> dict:
+    """Every baseline against coopjax in float64, before any timing counts."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import coopjax as cj
+    from benchmarks import implementations as im
+
+    rng = np.random.default_rng(1)
+    # Wide surrogate widths: at dt = 1e-3 the narrow ones chatter on F = F_lim and amplify round-off
+    # (a different but equally right order of operations then ends 1e-2 apart), which would test
+    # the loop's sensitivity, not the transcription.
+    params = cj.make_params(M_b=rng.uniform(0.5, 5.0, 4), K_GP=rng.uniform(0.3, 0.7, 4), k_F=2.0, k_c=2.0, eps_delta=1e-3)
+    P = im.parameter_matrix(params)
+    out = {}
+    for switch, T in (("smooth", 4.0), ("hard", 0.25)):
+        n, every = int(round(T / 1e-3)), 10
+        ours = np.asarray(cj.simulate(params, "carry", switch=switch, dt=1e-3, T=T, every=every, check_dt=False).trajectory.aux.F)
+        scale = np.abs(ours).max()
+        out[f"numpy_{switch}"] = float(np.abs(im.numpy_rk4(P, 1e-3, n, every, switch == "smooth") - ours).max() / scale)
+        if numba_rk4 is not None:
+            out[f"numba_{switch}"] = float(np.abs(numba_rk4(P, 1e-3, n, every, switch == "smooth") - ours).max() / scale)
+    # LSODA solves the ODE itself, so it is compared with a converged coopjax run (dt = 1e-4).
+    ours = np.asarray(cj.simulate(cj.make_params(), "carry", switch="smooth", dt=1e-4, every=100).trajectory.aux.F)
+    t_eval = np.arange(ours.shape[0]) * 1e-2
+    F, _ = im.lsoda(table1(), 4.0, t_eval, smooth=True, rtol=LSODA_RTOL, atol=LSODA_RTOL * 1e-3)
+    out["lsoda_smooth"] = float(np.abs(F - ours).max() / np.abs(ours).max())
+    out["ok"] = {k: v <= (LSODA_TOLERANCE if k.startswith("lsoda") else TOLERANCE) for k, v in out.items()}
+    return out
+
+
+def baselines(args, numba_rk4) -> tuple[list, dict]:
+    from benchmarks import implementations as im
+
+    import coopjax as cj
+
+    rows = []
+    Bs = [int(b) for b in args.Bs.split(",")]
+    numpy_steps = 50 if args.quick else 200
+    numba_steps = 500 if args.quick else int(round(args.T / 1e-3))
+    for B in Bs:
+        rng = np.random.default_rng(0)
+        P = im.parameter_matrix(cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B)))
+        for impl, fn, steps in (("numpy", im.numpy_rk4, numpy_steps), ("numba", numba_rk4, numba_steps)):
+            if fn is None:
+                continue
+            times = []
+            for _ in range(max(1, args.repeats if impl == "numba" else min(args.repeats, 3))):
+                t0 = time.perf_counter()
+                fn(P, 1e-3, steps, steps)
+                times.append(time.perf_counter() - t0)
+            run_s = statistics.median(times)
+            rows.append(dict(impl=impl, dtype="float64", devices=os.cpu_count() if impl == "numba" else 1, B=B,
+                             steps=steps, run_s=run_s, steps_per_s=B * steps / run_s))
+            print(f"  {impl} float64 B={B}: {rows[-1]['steps_per_s'] / 1e6:.3f} M steps/s ({steps} steps)", flush=True)
+    # LSODA: one parameter set per call, the smooth switch (the hard one makes it chatter: see README).
+    p = table1()
+    times = []
+    for k in range(1 if args.quick else 3):
+        p_k = dict(p, M_b=1.0 + k)
+        t0 = time.perf_counter()
+        _, nfev = im.lsoda(p_k, args.T, None, smooth=True, rtol=LSODA_RTOL, atol=LSODA_RTOL * 1e-3)
+        times.append(time.perf_counter() - t0)
+    lsoda = dict(seconds_per_set=statistics.median(times), rtol=LSODA_RTOL, switch="smooth", T=args.T, nfev=nfev)
+    lsoda["steps_per_s_equivalent"] = round(args.T / 1e-3) / lsoda["seconds_per_set"]
+    print(f"  LSODA (smooth, rtol {LSODA_RTOL:g}): {lsoda['seconds_per_set']:.3f} s per parameter set", flush=True)
+    return rows, lsoda
+
+
+def plot(rows, lsoda, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from coopjax.io import atomic_path
+
+    fig, ax = plt.subplots(figsize=(8, 5.2), constrained_layout=True)
+    groups = {}
+    for r in rows:
+        label = f"{r['impl']} {r['dtype']}" + (f", {r['devices']} device(s)" if r["impl"] == "coopjax" else
+                                             f", {r['devices']} thread(s)" if r["impl"] == "numba" else "")
+        groups.setdefault(label, []).append(r)
+    for label, rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r["B"])
+        style = "-" if label.startswith("coopjax") else "--"
+        ax.loglog([r["B"] for r in rs], [r["steps_per_s"] for r in rs], style, marker="o", label=label)
+    ax.axhline(lsoda["steps_per_s_equivalent"], color="k", ls=":", label=f"LSODA, one set per call (rtol {lsoda['rtol']:g})")
+    ax.set_xlabel("batch size B (parameter sets per call)")
+    ax.set_ylabel("parameter-set steps per second")
+    ax.set_title("carry scenario, RK4 dt = 1e-3 s, hard switch (LSODA: smooth)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def summarise(result) -> dict:
+    rows = result["throughput"]
+
+    def best(impl, dtype, B, devices=None):
+        cands = [r for r in rows if r["impl"] == impl and r["dtype"] == dtype and r["B"] == B
+                 and (devices is None or r["devices"] == devices)]
+        return max((r["steps_per_s"] for r in cands), default=None)
+
+    B = 4096 if any(r["B"] == 4096 for r in rows) else max(r["B"] for r in rows)
+    cores = result["machine"]["cores"]
+    s = {"B": B}
+    for dtype in ("float32", "float64"):
+        s[f"coopjax_{dtype}_1_device"] = best("coopjax", dtype, B, 1)
+        s[f"coopjax_{dtype}_all_devices"] = best("coopjax", dtype, B, cores)
+    s["numba_float64"] = best("numba", "float64", B)
+    s["numpy_float64"] = best("numpy", "float64", B)
+    top64 = max(x for x in (s["coopjax_float64_1_device"], s["coopjax_float64_all_devices"]) if x)
+    if s["numba_float64"]:
+        s["coopjax_over_numba_float64"] = top64 / s["numba_float64"]
+    if s["numpy_float64"]:
+        s["coopjax_over_numpy_float64"] = top64 / s["numpy_float64"]
+    per_set = round(result["config"]["T"] / 1e-3) / top64
+    s["coopjax_seconds_per_set_float64"] = per_set
+    s["coopjax_over_lsoda_per_set"] = result["lsoda"]["seconds_per_set"] / per_set
+    s["targets"] = {"float32 >= 50 M steps/s": (s["coopjax_float32_all_devices"] or 0) >= 50e6,
+                    "float64 >= 25 M steps/s": top64 >= 25e6,
+                    ">= 1e4 x LSODA per set": s["coopjax_over_lsoda_per_set"] >= 1e4,
+                    "faster than numba": s.get("coopjax_over_numba_float64", 0) > 1}
+    if "gradient" in result:
+        s["targets"]["forward-mode gradient <= 5 x forward"] = result["gradient"]["jacfwd_over_forward"] <= 5
+    return s
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes, one repeat: under 2 minutes")
+    parser.add_argument("--Bs", default=None, help="batch sizes (default 1,64,1024,4096,16384; quick 1,64,1024)")
+    parser.add_argument("--repeats", type=int, default=None, help="runs per figure, median reported (default 5; quick 1)")
+    parser.add_argument("--T", type=float, default=4.0, help="horizon in s (default 4, the carry scenario)")
+    parser.add_argument("--out", default=os.path.join(HERE, "results.json"))
+    parser.add_argument("--plot", default=os.path.join(HERE, "scaling.png"))
+    args = parser.parse_args(argv)
+    args.Bs = args.Bs or ("1,64,1024" if args.quick else "1,64,1024,4096,16384")
+    args.repeats = args.repeats or (1 if args.quick else 5)
+    if args.quick:
+        args.T = min(args.T, 1.0)
+    start = time.perf_counter()
+
+    try:
+        from benchmarks.implementations import make_numba_rk4
+
+        numba_rk4 = make_numba_rk4()
+        numba_rk4(np.ones((46, 2)), 1e-3, 2, 1)  # compile before anything is timed
+    except ImportError:
+        print("numba is not installed (pip install 'coopjax[bench]'): the numba baseline is skipped")
+        numba_rk4 = None
+
+    result = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  machine=machine(), config=dict(scenario="carry", dt=1e-3, T=args.T, switch="hard", quick=args.quick,
+                                                 repeats=args.repeats))
+    print("accuracy of the baselines against coopjax (float64) ...", flush=True)
+    result["accuracy"] = accuracy(numba_rk4)
+    for name, ok in result["accuracy"]["ok"].items():
+        print(f"  {name}: max relative force error {result['accuracy'][name]:.2e} {'ok' if ok else 'FAILED'}")
+    if not all(result["accuracy"]["ok"].values()):
+        print("a baseline disagrees with coopjax: its timings would not count; stopping", file=sys.stderr)
+        return 1
+
+    rows = []
+    cores = os.cpu_count() or 1
+    children = [run_child(1, args, extras=True)] + ([run_child(cores, args, extras=False)] if cores > 1 else [])
+    for child in children:
+        rows += child["throughput"]
+    first = children[0]
+    for key in ("gradient", "memory", "compile_vs_horizon", "flops"):
+        result[key] = first[key]
+    result["machine"]["device_counts"] = [c["device_count"] for c in children]
+    print("baselines ...", flush=True)
+    base_rows, result["lsoda"] = baselines(args, numba_rk4)
+    result["throughput"] = rows + base_rows
+    peak = result["machine"].get("peak_gflops_estimate")
+    if peak:
+        result["flops"]["peak_gflops_estimate_float32"] = peak["float32"]
+        result["flops"]["fraction_of_peak"] = result["flops"]["achieved_gflops"] / peak["float32"]
+    result["summary"] = summarise(result)
+    result["seconds"] = time.perf_counter() - start
+
+    from coopjax.io import atomic_path
+
+    with atomic_path(args.out) as tmp:
+        with open(tmp, "w") as f:
+            json.dump(result, f, indent=1)
+    plot(result["throughput"], result["lsoda"], args.plot)
+    report(result)
+    print(f"wrote {args.out} and {args.plot} in {result['seconds']:.0f} s")
+    return 0
+
+
+def report(result):
+    m, s = result["machine"], result["summary"]
+    print(f"\n{m['cpu']}, {m['cores']} cores, jax {m['jax']}, device counts {m['device_counts']}, numba {m['numba']}")
+    print(f"{'implementation':<34} {'B':>6} {'M steps/s':>10} {'compile [s]':>12}")
+    for r in sorted(result["throughput"], key=lambda r: (r["impl"], r["dtype"], r["devices"], r["B"])):
+        label = f"{r['impl']} {r['dtype']} x{r['devices']}"
+        compile_s = f"{r['compile_s']:.2f}" if "compile_s" in r else ""
+        print(f"{label:<34} {r['B']:>6} {r['steps_per_s'] / 1e6:>10.3f} {compile_s:>12}")
+    lsoda = result["lsoda"]
+    print(f"{'LSODA (smooth), one set per call':<34} {1:>6} {lsoda['steps_per_s_equivalent'] / 1e6:>10.4f}"
+          f"   ({lsoda['seconds_per_set']:.3f} s per set)")
+    g = result["gradient"]
+    print(f"\nfour-gain gradient / forward (B = {g['B']}, T = {g['T']:g} s): forward mode {g['jacfwd_over_forward']:.2f}x, "
+          f"reverse mode {g['grad_over_forward']:.2f}x")
+    for r in result["memory"]:
+        run = f"{r['run_s']:.2f} s" if r["run_s"] else "not run"
+        print(f"reverse mode, checkpoint={r['checkpoint']:<6} T={r['T']:>5g} s: {r['temp_bytes'] / 1e6:9.1f} MB, {run}")
+    print("compile time: " + ", ".join(f"T={r['T']:g} s ({r['n_steps']} steps) {r['compile_s']:.2f} s"
+                                       for r in result["compile_vs_horizon"]))
+    f = result["flops"]
+    peak = f.get("peak_gflops_estimate_float32")
+    print(f"XLA cost analysis: {f['flops_per_sample_step']:.0f} FLOP per sample-step; achieved {f['achieved_gflops']:.1f} "
+          f"GFLOP/s (float32, 1 device, B = {f['B']})" + (f" = {100 * f['fraction_of_peak']:.1f}% of an estimated "
+                                                          f"{peak:.0f} GFLOP/s peak" if peak else ""))
+    print(f"\nat B = {s['B']}: coopjax / numba {s.get('coopjax_over_numba_float64', float('nan')):.2f}x, coopjax / numpy "
+          f"{s.get('coopjax_over_numpy_float64', float('nan')):.1f}x, per parameter set vs LSODA "
+          f"{s['coopjax_over_lsoda_per_set']:.3g}x")
+    for target, met in s["targets"].items():
+        print(f"  target {target}: {'met' if met else 'NOT met'}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

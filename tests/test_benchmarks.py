@@ -1,0 +1,30 @@
+"""Smoke test of `python -m benchmarks`: a tiny run writes results.json with the documented fields."""
+
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def test_quick_benchmark_writes_the_documented_fields(tmp_path):
+    out, plot = tmp_path / "results.json", tmp_path / "scaling.png"
+    run = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--Bs", "2", "--T", "0.05",
+                          "--out", str(out), "--plot", str(plot)], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    result = json.load(open(out))
+    assert {"jax", "cpu", "cores", "device_counts"} <= set(result["machine"])
+    assert all(result["accuracy"]["ok"].values())  # every baseline matched coopjax before timing
+    impls = {(r["impl"], r["dtype"], r["devices"]) for r in result["throughput"]}
+    assert {("coopjax", "float32", 1), ("coopjax", "float64", 1), ("numpy", "float64", 1)} <= impls
+    assert any(i[0] == "numba" for i in impls)
+    for r in result["throughput"]:
+        assert r["steps_per_s"] > 0 and r["run_s"] > 0
+    assert result["lsoda"]["seconds_per_set"] > 0
+    assert {"jacfwd_over_forward", "grad_over_forward"} <= set(result["gradient"])
+    assert {r["checkpoint"] for r in result["memory"]} >= {"True", "nested"}
+    assert len(result["compile_vs_horizon"]) >= 2
+    assert result["flops"]["flops_per_sample_step"] > 0
+    assert {"coopjax_over_lsoda_per_set", "targets"} <= set(result["summary"])
+    assert plot.stat().st_size > 10_000
