@@ -156,6 +156,11 @@ def baselines(args, numba_rk4) -> tuple[list, dict]:
         times.append(time.perf_counter() - t0)
     lsoda = dict(seconds_per_set=statistics.median(times), rtol=LSODA_RTOL, switch="smooth", T=args.T, nfev=nfev)
     lsoda["steps_per_s_equivalent"] = round(args.T / 1e-3) / lsoda["seconds_per_set"]
+    if args.lsoda_hard:  # minutes per set: the hard switch chatters and LSODA follows every switch
+        t0 = time.perf_counter()
+        _, nfev_hard = im.lsoda(p, args.T, None, smooth=False, rtol=1e-3, atol=1e-6)
+        lsoda["hard"] = dict(seconds_per_set=time.perf_counter() - t0, rtol=1e-3, nfev=nfev_hard)
+        print(f"  LSODA (hard, rtol 1e-3): {lsoda['hard']['seconds_per_set']:.1f} s for one parameter set", flush=True)
     print(f"  LSODA (smooth, rtol {LSODA_RTOL:g}): {lsoda['seconds_per_set']:.3f} s per parameter set", flush=True)
     return rows, lsoda
 
@@ -228,6 +233,7 @@ def main(argv=None) -> int:
     parser.add_argument("--Bs", default=None, help="batch sizes (default 1,64,1024,4096,16384; quick 1,64,1024)")
     parser.add_argument("--repeats", type=int, default=None, help="runs per figure, median reported (default 5; quick 1)")
     parser.add_argument("--T", type=float, default=4.0, help="horizon in s (default 4, the carry scenario)")
+    parser.add_argument("--lsoda-hard", action="store_true", help="also time LSODA on the hard switch (minutes)")
     parser.add_argument("--out", default=os.path.join(HERE, "results.json"))
     parser.add_argument("--plot", default=os.path.join(HERE, "scaling.png"))
     args = parser.parse_args(argv)

@@ -43,14 +43,18 @@ def test_forward_mode_matches_finite_differences_and_reverse(reference):
 
 
 def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
+    from coopjax.integration import SimConfig, integrate
+    from coopjax.model import Options
+
     def compiled(checkpoint, T):
-        f = lambda k: cj.loss(cj.simulate(cj.make_params(K_GP=k, M_b=jnp.ones(4)), "carry", switch="smooth", dt=1e-3,
-                                          T=T, checkpoint=checkpoint, check_dt=False).metrics).mean()
+        config = SimConfig("carry", Options(switch="smooth"), dt=1e-3, T=T, checkpoint=checkpoint)
+        f = lambda k: cj.loss(integrate(cj.make_params(K_GP=k, M_b=jnp.ones(2)), config).metrics).mean()
         return jax.jit(jax.grad(f)).lower(0.5).compile()
 
-    memory = {(c, T): compiled(c, T).memory_analysis().temp_size_in_bytes for c in (True, "nested") for T in (1.0, 4.0)}
-    assert 3.5 < memory[True, 4.0] / memory[True, 1.0] < 4.5  # one carry per step: linear
-    assert memory["nested", 4.0] / memory["nested", 1.0] < 2.5  # sqrt(4) = 2
-    assert memory["nested", 4.0] < memory[True, 4.0] / 5
-    step, nested = (float(compiled(c, 4.0)(0.5)) for c in (True, "nested"))
+    programs = {(c, T): compiled(c, T) for c in (True, "nested") for T in (0.5, 2.0)}
+    memory = {key: program.memory_analysis().temp_size_in_bytes for key, program in programs.items()}
+    assert 3.5 < memory[True, 2.0] / memory[True, 0.5] < 4.5  # one carry per step: linear
+    assert memory["nested", 2.0] / memory["nested", 0.5] < 2.5  # sqrt(4) = 2
+    assert memory["nested", 2.0] < memory[True, 2.0] / 5
+    step, nested = (float(programs[c, 2.0](0.5)) for c in (True, "nested"))
     assert nested == pytest.approx(step, rel=1e-5)  # the same gradient, up to the order of operations
