@@ -71,7 +71,10 @@ def test_resume_ends_where_an_uninterrupted_run_ends(objective, tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_a_non_finite_step_is_rejected_and_retried_with_half_the_move(objective, monkeypatch):
+def poison(monkeypatch, objective, bad_calls):
+    """Make the loss NaN on the given evaluation numbers (1-based), as if a sample had diverged.
+
+    Returns the list of evaluated points, filled as the run goes."""
     real = opt.value_and_grad_fn(objective, "forward")
     calls = []
 
@@ -79,12 +82,15 @@ def test_a_non_finite_step_is_rejected_and_retried_with_half_the_move(objective,
         def vg(theta, masses, widths, base):
             calls.append(np.asarray(theta))
             loss, grad, metrics = real(theta, masses, widths, base)
-            if len(calls) == 2:  # the first evaluation after the first move: as if a sample diverged
-                return jnp.nan * loss, grad, metrics
-            return loss, grad, metrics
+            return (jnp.nan * loss if len(calls) in bad_calls else loss), grad, metrics
         return vg
 
     monkeypatch.setattr(opt, "value_and_grad_fn", poisoned)
+    return calls
+
+
+def test_a_non_finite_step_is_rejected_and_retried_with_half_the_move(objective, monkeypatch):
+    calls = poison(monkeypatch, objective, {2})  # the first evaluation after the first move
     config = opt.TuneConfig(objective=objective, batch=2, steps=3, learning_rate=0.3)
     lines = []
     state = opt.tune(config, BASE, log=lines.append, check_gradient=False)
@@ -96,24 +102,13 @@ def test_a_non_finite_step_is_rejected_and_retried_with_half_the_move(objective,
 
 
 def test_a_batch_that_stays_non_finite_is_skipped_at_the_last_good_gains(objective, monkeypatch):
-    real = opt.value_and_grad_fn(objective, "forward")
-    calls = []
-
-    def poisoned(objective, mode):
-        def vg(theta, masses, widths, base):
-            calls.append(np.asarray(theta))
-            loss, grad, metrics = real(theta, masses, widths, base)
-            bad = 2 <= len(calls) <= 2 + objective_retries  # the whole of step 1, every halving included
-            return (jnp.nan * loss if bad else loss), grad, metrics
-        return vg
-
-    objective_retries = opt.TuneConfig().max_retries
-    monkeypatch.setattr(opt, "value_and_grad_fn", poisoned)
+    retries = opt.TuneConfig().max_retries
+    calls = poison(monkeypatch, objective, set(range(2, 3 + retries)))  # all of step 1, every halving included
     config = opt.TuneConfig(objective=objective, batch=2, steps=3, learning_rate=0.3)
     state = opt.tune(config, BASE, log=lambda s: None, check_gradient=False)
     assert np.isnan(state.history["loss"][1]) and np.isfinite(state.history["loss"][2])
     np.testing.assert_array_equal(calls[-1], calls[0])  # step 2 starts again from the last good gains
-    assert state.history["rejected"][1] == objective_retries + 1
+    assert state.history["rejected"][1] == retries + 1
 
 
 def test_non_finite_loss_at_the_start_stops_with_a_clear_error(objective):
