@@ -229,7 +229,8 @@ def summarise(result) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="small sizes, one repeat: under 2 minutes")
+    parser.add_argument("--quick", action="store_true", help="small sizes, one repeat, no memory or compile-time "
+                        "study: under 2 minutes")
     parser.add_argument("--Bs", default=None, help="batch sizes (default 1,64,1024,4096,16384; quick 1,64,1024)")
     parser.add_argument("--repeats", type=int, default=None, help="runs per figure, median reported (default 5; quick 1)")
     parser.add_argument("--T", type=float, default=4.0, help="horizon in s (default 4, the carry scenario)")
@@ -270,7 +271,8 @@ def main(argv=None) -> int:
         rows += child["throughput"]
     first = children[0]
     for key in ("gradient", "memory", "compile_vs_horizon", "flops"):
-        result[key] = first[key]
+        if key in first:
+            result[key] = first[key]
     result["machine"]["device_counts"] = [c["device_count"] for c in children]
     print("baselines ...", flush=True)
     base_rows, result["lsoda"] = baselines(args, numba_rk4)
@@ -307,11 +309,12 @@ def report(result):
     g = result["gradient"]
     print(f"\nfour-gain gradient / forward (B = {g['B']}, T = {g['T']:g} s): forward mode {g['jacfwd_over_forward']:.2f}x, "
           f"reverse mode {g['grad_over_forward']:.2f}x")
-    for r in result["memory"]:
+    for r in result.get("memory", []):
         run = f"{r['run_s']:.2f} s" if r["run_s"] else "not run"
         print(f"reverse mode, checkpoint={r['checkpoint']:<6} T={r['T']:>5g} s: {r['temp_bytes'] / 1e6:9.1f} MB, {run}")
-    print("compile time: " + ", ".join(f"T={r['T']:g} s ({r['n_steps']} steps) {r['compile_s']:.2f} s"
-                                       for r in result["compile_vs_horizon"]))
+    if "compile_vs_horizon" in result:
+        print("compile time: " + ", ".join(f"T={r['T']:g} s ({r['n_steps']} steps) {r['compile_s']:.2f} s"
+                                           for r in result["compile_vs_horizon"]))
     f = result["flops"]
     peak = f.get("peak_gflops_estimate_float32")
     print(f"XLA cost analysis: {f['flops_per_sample_step']:.0f} FLOP per sample-step; achieved {f['achieved_gflops']:.1f} "

@@ -99,7 +99,7 @@ def gradient_cost(B, repeats, T):
                 grad_over_forward=out["grad"]["run_s"] / out["forward"]["run_s"])
 
 
-def memory(B, horizons, repeats, quick=False):
+def memory(B, horizons, repeats):
     """Reverse-mode temporary memory (XLA's analysis of the compiled gradient) and run time."""
     import jax
     import jax.numpy as jnp
@@ -109,7 +109,7 @@ def memory(B, horizons, repeats, quick=False):
     from coopjax.model import Options
 
     rows = []
-    for checkpoint in ((True, "nested") if quick else (False, True, "nested")):
+    for checkpoint in (False, True, "nested"):
         for T in horizons:
             config = SimConfig("carry", Options(switch="smooth"), dt=1e-3, T=T, checkpoint=checkpoint)
             loss = lambda k: cj.loss(integrate(cj.make_params(K_GP=k, M_b=jnp.linspace(0.5, 5.0, B)), config).metrics).mean()
@@ -182,9 +182,10 @@ def main():
         quick, T = args.quick, args.T
         print("  gradient cost ...", flush=True)
         result["gradient"] = gradient_cost(16 if quick else 64, 3 if quick else args.repeats, T)
-        print("  reverse-mode memory ...", flush=True)
-        result["memory"] = memory(8, (T, 10 * T), 1 if quick else 3, quick)
-        result["compile_vs_horizon"] = compile_vs_horizon((T, 10 * T) if quick else (T / 10, T, 10 * T))
+        if not quick:  # shape studies: several extra compilations each, left to the full run
+            print("  reverse-mode memory ...", flush=True)
+            result["memory"] = memory(8, (T, 10 * T), 3)
+            result["compile_vs_horizon"] = compile_vs_horizon((T / 10, T, 10 * T))
         best = max((r for r in result["throughput"] if r["dtype"] == "float32"), key=lambda r: r["B"])
         result["flops"] = flops(best["B"], best["steps_per_s"])
     print(json.dumps(result))
