@@ -15,11 +15,11 @@ import time
 
 
 def timed(compiled, *args, repeats):
+    import jax
+
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        import jax
-
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
     return statistics.median(times)

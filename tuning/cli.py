@@ -150,7 +150,7 @@ def _log(args):
 
 
 def _tune_and_report(args, config, base, held_out, files) -> int:
-    from tuning.objective import judge
+    from tuning.objective import HOLD_TOLERANCE, judge
     from tuning.optimize import tune
 
     log = print  # the gradient check and rejections are always shown
@@ -168,7 +168,7 @@ def _tune_and_report(args, config, base, held_out, files) -> int:
         "after": _row(after),
         "held_out_masses": [float(m) for m in held_out],
         "judge": {"switch": "hard", "contact": "unilateral", "dtype": "float64", "dt": args.judge_dt,
-                  "hold_tolerance_N": _hold_tolerance()},
+                  "hold_tolerance_N": HOLD_TOLERANCE},
         "weights": config.objective.weights._asdict(),
         "config": json.loads(config.to_json()),
         "history": state.history,
@@ -220,12 +220,6 @@ def _select_iterate(args, config, base, state):
           f"(validation: min grip {v.min_grip:.3f} N, peak {v.peak_grip:.1f} N, lag {v.rms_lag * 1e3:.1f} mm)")
     return candidates[chosen], {"candidates": len(candidates), "chosen_steps_before_end": chosen, "holding": held,
                                 "validation_masses": [float(m) for m in masses], "validation": _row(v)}
-
-
-def _hold_tolerance():
-    from tuning.objective import HOLD_TOLERANCE
-
-    return HOLD_TOLERANCE
 
 
 def _row(verdict) -> dict:

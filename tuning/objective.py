@@ -222,7 +222,7 @@ class Verdict(NamedTuple):
     per_mass: dict  # name -> list over masses
 
     def row(self) -> dict:
-        return {k: v for k, v in self._asdict().items()}
+        return dict(self._asdict())
 
 
 def judge(gains: dict[str, float] | list[dict[str, float]], masses: np.ndarray, base: Params | None = None,
