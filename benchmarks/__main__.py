@@ -108,7 +108,8 @@ def accuracy(numba_rk4) -> dict:
     out = {}
     for switch, T in (("smooth", 4.0), ("hard", 0.25)):
         n, every = int(round(T / 1e-3)), 10
-        ours = np.asarray(cj.simulate(params, "carry", switch=switch, dt=1e-3, T=T, every=every, check_dt=False).trajectory.aux.F)
+        ours = np.asarray(cj.simulate(params, "carry", switch=switch, integrator="rk4", dt=1e-3, T=T, every=every,
+                                      check_dt=False).trajectory.aux.F)
         scale = np.abs(ours).max()
         out[f"numpy_{switch}"] = float(np.abs(im.numpy_rk4(P, 1e-3, n, every, switch == "smooth") - ours).max() / scale)
         if numba_rk4 is not None:
@@ -186,7 +187,8 @@ def plot(rows, lsoda, path):
     ax.axhline(lsoda["steps_per_s_equivalent"], color="k", ls=":", label=f"LSODA, one set per call (rtol {lsoda['rtol']:g})")
     ax.set_xlabel("batch size B (parameter sets per call)")
     ax.set_ylabel("parameter-set steps per second")
-    ax.set_title("carry scenario, RK4 dt = 1e-3 s, hard switch (LSODA: smooth)")
+    ax.set_title("carry scenario, dt = 1e-3 s, hard switch: plain RK4, and coopjax's sliding-mode step "
+                 "(coopjax_filippov); LSODA: smooth", fontsize=9)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     with atomic_path(path) as tmp:
@@ -218,12 +220,22 @@ def summarise(result) -> dict:
     per_set = round(result["config"]["T"] / 1e-3) / top64
     s["coopjax_seconds_per_set_float64"] = per_set
     s["coopjax_over_lsoda_per_set"] = result["lsoda"]["seconds_per_set"] / per_set
+    # The sliding-mode step against plain RK4, same dtype and device count (issue 9: at most 3x).
+    s["filippov_over_rk4_cost"] = {}
+    for dtype in ("float32", "float64"):
+        for devices in (1, cores):
+            rk4, filippov = best("coopjax", dtype, B, devices), best("coopjax_filippov", dtype, B, devices)
+            if rk4 and filippov:
+                s["filippov_over_rk4_cost"][f"{dtype}_{devices}_device"] = rk4 / filippov
     s["targets"] = {"float32 >= 50 M steps/s": (s["coopjax_float32_all_devices"] or 0) >= 50e6,
                     "float64 >= 25 M steps/s": top64 >= 25e6,
                     ">= 1e4 x LSODA per set": s["coopjax_over_lsoda_per_set"] >= 1e4,
                     "faster than numba": s.get("coopjax_over_numba_float64", 0) > 1}
     if "gradient" in result:
         s["targets"]["forward-mode gradient <= 5 x forward"] = result["gradient"]["jacfwd_over_forward"] <= 5
+    cost = s["filippov_over_rk4_cost"].get(f"float64_{cores}_device")
+    if cost:
+        s["targets"]["filippov step <= 3 x rk4 step (float64, all devices)"] = cost <= 3
     return s
 
 
@@ -235,6 +247,8 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=None, help="runs per figure, median reported (default 5; quick 1)")
     parser.add_argument("--T", type=float, default=4.0, help="horizon in s (default 4, the carry scenario)")
     parser.add_argument("--lsoda-hard", action="store_true", help="also time LSODA on the hard switch (minutes)")
+    parser.add_argument("--max-devices", type=int, default=None, help="largest XLA CPU device count to time "
+                        "(default: one per core)")
     parser.add_argument("--out", default=os.path.join(HERE, "results.json"))
     parser.add_argument("--plot", default=os.path.join(HERE, "scaling.png"))
     args = parser.parse_args(argv)
@@ -265,12 +279,12 @@ def main(argv=None) -> int:
         return 1
 
     rows = []
-    cores = os.cpu_count() or 1
+    cores = min(os.cpu_count() or 1, args.max_devices or os.cpu_count() or 1)
     children = [run_child(1, args, extras=True)] + ([run_child(cores, args, extras=False)] if cores > 1 else [])
     for child in children:
         rows += child["throughput"]
     first = children[0]
-    for key in ("gradient", "memory", "compile_vs_horizon", "flops"):
+    for key in ("gradient", "memory", "compile_vs_horizon", "flops", "flops_filippov"):
         if key in first:
             result[key] = first[key]
     result["machine"]["device_counts"] = [c["device_count"] for c in children]
@@ -323,6 +337,8 @@ def report(result):
     print(f"\nat B = {s['B']}: coopjax / numba {s.get('coopjax_over_numba_float64', float('nan')):.2f}x, coopjax / numpy "
           f"{s.get('coopjax_over_numpy_float64', float('nan')):.1f}x, per parameter set vs LSODA "
           f"{s['coopjax_over_lsoda_per_set']:.3g}x")
+    for key, cost in s["filippov_over_rk4_cost"].items():
+        print(f"cost of a filippov step over a plain RK4 step, {key.replace('_', ' ')}: {cost:.2f}x")
     for target, met in s["targets"].items():
         print(f"  target {target}: {'met' if met else 'NOT met'}")
 

@@ -40,33 +40,37 @@ def make_batch(B, dtype):
     return cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B), dtype=dtype)
 
 
+IMPL = {"rk4": "coopjax", "filippov": "coopjax_filippov"}  # the NumPy and numba peers are plain RK4
+
+
 def throughput(Bs, dtypes, devices, repeats, T):
-    """Forward parameter-set steps per second, carry, hard switch, dt = 1e-3, sharded over devices."""
+    """Forward parameter-set steps per second, carry, hard switch, dt = 1e-3, sharded over devices,
+    for plain RK4 and for the sliding-mode step."""
     import jax
     import numpy as np
 
     from coopjax.integration import SimConfig, integrate
     from coopjax.model import Options
 
-    config = SimConfig("carry", Options(switch="hard"), dt=1e-3, T=T)
     mesh = jax.sharding.Mesh(np.array(jax.devices()[:devices]), ("batch",))
     rows = []
-    for dtype in dtypes:
-        for B in Bs:
-            if B % devices:  # a batch that does not split evenly is the 1-device child's figure
-                continue
-            params = make_batch(B, dtype)
-            used = devices
-            if used > 1:
-                spec = lambda x: jax.sharding.PartitionSpec(*([None] * (x.ndim - 1) + ["batch"]))
-                params = jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, spec(x))), params)
-            fn = jax.jit(lambda p: integrate(p, config).metrics)
-            compiled, compile_s = compile_timed(fn, params)
-            jax.block_until_ready(compiled(params))  # warm-up
-            run_s = timed(compiled, params, repeats=repeats)
-            rows.append(dict(impl="coopjax", dtype=dtype, devices=used, B=B, steps=config.n_steps, compile_s=compile_s,
-                             run_s=run_s, steps_per_s=B * config.n_steps / run_s))
-            print(f"  coopjax {dtype} {used} device(s) B={B}: {rows[-1]['steps_per_s'] / 1e6:.2f} M steps/s", flush=True)
+    for integrator, dtype, B in ((i, d, B) for i in IMPL for d in dtypes for B in Bs):
+        config = SimConfig("carry", Options(switch="hard"), integrator=integrator, dt=1e-3, T=T)
+        if B % devices:  # a batch that does not split evenly is the 1-device child's figure
+            continue
+        params = make_batch(B, dtype)
+        used = devices
+        if used > 1:
+            spec = lambda x: jax.sharding.PartitionSpec(*([None] * (x.ndim - 1) + ["batch"]))
+            params = jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, spec(x))), params)
+        fn = jax.jit(lambda p: integrate(p, config).metrics)
+        compiled, compile_s = compile_timed(fn, params)
+        jax.block_until_ready(compiled(params))  # warm-up
+        run_s = timed(compiled, params, repeats=repeats)
+        rows.append(dict(impl=IMPL[integrator], integrator=integrator, dtype=dtype, devices=used, B=B,
+                         steps=config.n_steps, compile_s=compile_s, run_s=run_s, steps_per_s=B * config.n_steps / run_s))
+        print(f"  coopjax {integrator} {dtype} {used} device(s) B={B}: {rows[-1]['steps_per_s'] / 1e6:.2f} M steps/s",
+              flush=True)
     return rows
 
 
@@ -140,15 +144,15 @@ def compile_vs_horizon(horizons):
     return rows
 
 
-def flops(B, steps_per_s):
-    """XLA's cost analysis of one RK4 step at batch B, and the rate it implies at the measured speed."""
+def flops(B, steps_per_s, integrator="rk4"):
+    """XLA's cost analysis of one step at batch B, and the rate it implies at the measured speed."""
     import jax
 
     from coopjax.integration import SimConfig, step
     from coopjax.model import init_state
 
     params = make_batch(B, "float32")
-    config = SimConfig("carry", dt=1e-3)
+    config = SimConfig("carry", integrator=integrator, dt=1e-3)
     y = init_state(params)
     compiled = jax.jit(lambda p, y, t: step(p, y, t, config)).lower(params, y, 0.5).compile()
     cost = compiled.cost_analysis()
@@ -186,8 +190,10 @@ def main():
             print("  reverse-mode memory ...", flush=True)
             result["memory"] = memory(8, (T, 10 * T), 3)
             result["compile_vs_horizon"] = compile_vs_horizon((T / 10, T, 10 * T))
-        best = max((r for r in result["throughput"] if r["dtype"] == "float32"), key=lambda r: r["B"])
-        result["flops"] = flops(best["B"], best["steps_per_s"])
+        for integrator, key in (("rk4", "flops"), ("filippov", "flops_filippov")):
+            best = max((r for r in result["throughput"] if r["dtype"] == "float32" and r["integrator"] == integrator),
+                       key=lambda r: r["B"])
+            result[key] = flops(best["B"], best["steps_per_s"], integrator)
     print(json.dumps(result))
 
 

@@ -1,6 +1,6 @@
 """coopjax: a JAX-vectorised, differentiable simulator of two cooperating space robots."""
 
-from coopjax.integration import SimConfig, Solution, Trajectory, integrate, rk4, simulate, step
+from coopjax.integration import INTEGRATORS, SimConfig, Solution, Trajectory, integrate, rk4, simulate, step
 from coopjax.model import STATE_NAMES, Aux, Options, momentum, vector_field
 from coopjax.objectives import Metrics, Weights, loss
 from coopjax.params import PARAMETERS, Params, make_params

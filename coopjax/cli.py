@@ -18,8 +18,6 @@ import numpy as np
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
 PLOT_FORMATS = ("png", "pdf", "svg")
-# Largest steps at which the Table 1 run's forces stopped changing with dt (docs/model.md, "Step size").
-CONVERGED_DT = {("carry", "hard"): 5e-5, ("carry", "straight_through"): 5e-5, ("carry", "smooth"): 1e-4}
 
 
 class BadInput(Exception):
@@ -53,11 +51,22 @@ def check_output(path: str, what: str, extensions=None) -> None:
         raise BadInput(f"{what} {path!r}: the file name must end in one of .{', .'.join(extensions)}")
 
 
+def resolve_integrator(args) -> str:
+    """--integrator, defaulting to the sliding-mode step for the hard switch and RK4 otherwise."""
+    from coopjax.integration import INTEGRATORS, default_integrator
+
+    integrator = args.integrator or default_integrator(args.switch)
+    if integrator not in INTEGRATORS:
+        raise BadInput(f"--integrator {integrator!r}: choose one of {', '.join(INTEGRATORS)}")
+    return integrator
+
+
 def note_step_size(args) -> None:
-    converged_dt = CONVERGED_DT.get((args.scenario, args.switch))
-    if converged_dt and args.dt > converged_dt:
-        print(f"note: {args.scenario} with the {args.switch} switch needs dt <= {converged_dt:g} s for "
-              "step-independent forces (docs/model.md, 'Step size'); this run used a coarser step")
+    from coopjax.integration.loop import step_size_note
+
+    note = step_size_note(args.scenario, args.switch, resolve_integrator(args), args.dt)
+    if note:
+        print(note)
 
 
 def build_parser() -> Parser:
@@ -79,7 +88,12 @@ def build_parser() -> Parser:
         "`coopjax params` lists the names)",
     )
     common.add_argument("--switch", default="hard", help="hard (default), smooth, blend or straight_through")
-    common.add_argument("--dt", type=float, default=1e-3, help="RK4 step in s (default 1e-3; see docs/model.md on step size)")
+    common.add_argument(
+        "--integrator", default=None, choices=("filippov", "rk4"),
+        help="filippov: the sliding-mode step, the default for the hard switch (its answer is the dt -> 0 "
+        "limit at dt = 1e-3); rk4: plain RK4, the only choice for the smooth switches",
+    )
+    common.add_argument("--dt", type=float, default=1e-3, help="step in s (default 1e-3; see docs/model.md, 'Step size')")
     common.add_argument("--T", type=float, default=None, help="horizon in s (default: the scenario's)")
     common.add_argument("--x64", action="store_true", help="float64 (default: float32)")
 
@@ -162,7 +176,7 @@ def cmd_sweep(args) -> int:
         table.pop("sample", None)
     spec = sweeps.make_spec(
         args.scenario, args.n, dict(_parse_vary(v) for v in args.vary), dict(parse_assignment(s) for s in args.set),
-        args.seed, args.switch, args.dt, args.T, args.x64, table,
+        args.seed, args.switch, args.dt, args.T, args.x64, table, resolve_integrator(args),
     )
     # Set here, in the entry point, and only now that the input is known to be good: the device
     # count is fixed once JAX's backend starts (a caller that already started it keeps its own).
@@ -245,7 +259,8 @@ def cmd_simulate(args) -> int:
     every = args.every if args.every is not None else max(1, int(round(0.01 / args.dt))) if args.dt > 0 else 1
     params = make_params(**overrides)
     solution = simulate(
-        params, args.scenario, switch=args.switch, contact=args.contact, dt=args.dt, T=args.T, every=every
+        params, args.scenario, switch=args.switch, contact=args.contact, integrator=resolve_integrator(args),
+        dt=args.dt, T=args.T, every=every,
     )
 
     traj = solution.trajectory
@@ -264,7 +279,8 @@ def cmd_simulate(args) -> int:
     m = solution.metrics
     t = np.asarray(traj.t)
     F = np.asarray(traj.aux.F)
-    print(f"coopjax simulate: scenario {args.scenario}, switch {args.switch}, dt {args.dt:g} s, "
+    print(f"coopjax simulate: scenario {args.scenario}, switch {args.switch}, integrator {resolve_integrator(args)}, "
+          f"dt {args.dt:g} s, "
           f"{'float64' if args.x64 else 'float32'}")
     print(f"{'t [s]':>6} {'F_L [N]':>9} {'F_R [N]':>9} {'gamma_L':>8} {'gamma_R':>8}")
     for tq in (0.5, 1.0, 2.0, 3.0, 4.0):

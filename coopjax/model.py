@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from coopjax import surrogates
 from coopjax.params import PER_ROBOT, Params
-from coopjax.scenarios import Scenario
+from coopjax.scenarios import Clock, Scenario
 
 ROBOT_STATES = ("x_r", "v_r", "x_v", "v_v", "q_c", "x_f", "v_f", "Z", "Y_e")
 BODY_STATES = ("x_o", "v_o")
@@ -100,21 +100,28 @@ def controller(p: Params, v_ref, a_ref, v_meas, q_c, x_f, v_f, gamma, f_ext, bas
     return err, e_c, a_r, a_f
 
 
+def geometry(p: Params, st, s):
+    """Gripper compression delta_i, its rate, and the Kelvin-Voigt force K_g delta + R_g delta_dot.
+
+    The Kelvin-Voigt force is linear in the state; the contact force is it, clipped, while in contact.
+    """
+    delta = p.delta0 + s * (st["x_r"] - st["x_o"][None])
+    delta_dot = s * (st["v_r"] - st["v_o"][None])
+    return delta, delta_dot, p.K_g * delta + p.R_g * delta_dot
+
+
 def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: Options):
-    """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B)."""
+    """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B); t a time or a Clock."""
     p = params
     st = unpack(y)
     s = sign(y.ndim - 1, y.dtype)
-    x_o, v_o = st["x_o"][None], st["v_o"][None]
-
-    delta = p.delta0 + s * (st["x_r"] - x_o)
-    delta_dot = s * (st["v_r"] - v_o)
+    delta, delta_dot, _ = geometry(p, st, s)
     F = surrogates.contact_force(p, delta, delta_dot, options)
-
-    v_cmd, a_cmd, x_ref = scenario.command(p, t)
+    command = scenario.command(p, t if isinstance(t, Clock) else Clock.at(t))
     w = surrogates.switch(p, F, options)
     if options.switch != "blend":
-        return switched_field(p, st, s, F, w, v_cmd, a_cmd, x_ref, options)
+        rates, aux = robot_field(p, st, s, F, w, command, options)
+        return pack({**rates, **body_field(p, st, F)}), aux
     # Blend: the convex combination of the switch-off and switch-on fields, weighted by the smooth
     # switch. The field is nonlinear in w (gamma sits in the controller's denominator, and a_ref has a
     # (1 - w)^2 term), so substituting a fractional w ("smooth") slides along F = F_lim differently
@@ -122,34 +129,46 @@ def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: O
     # model's chatter averages to, as the width k_F goes to 0. The switch-on field is only meaningful
     # for F >= F_lim (far below it gamma would exceed 1 and the controller's denominator can vanish),
     # so within the sigmoid's tail below F_lim it is taken at the surface value of gamma.
-    one = jnp.ones_like(w)
-    dy_off, aux_off = switched_field(p, st, s, F, 0.0 * one, v_cmd, a_cmd, x_ref, options)
-    dy_on, aux_on = switched_field(p, st, s, F, one, v_cmd, a_cmd, x_ref, options, jnp.maximum(F, p.F_lim))
-    off, on = unpack(dy_off), unpack(dy_on)
-    # Each robot's rows blend with its own w; the body's rows do not depend on w.
-    dy = pack({**off, **{q: off[q] + w * (on[q] - off[q]) for q in ROBOT_STATES}})
+    off, aux_off = robot_field(p, st, s, F, 0.0, command, options)
+    on, aux_on = robot_field(p, st, s, F, 1.0, command, options, F_gamma=jnp.maximum(F, p.F_lim))
+    rates = {q: off[q] + w * (on[q] - off[q]) for q in ROBOT_STATES}
     aux = jax.tree_util.tree_map(lambda a, b: a + w * (b - a), aux_off, aux_on)
-    return dy, aux._replace(F=F, w=w, x_ref=x_ref)
+    return pack({**rates, **body_field(p, st, F)}), aux._replace(F=F, w=w)
 
 
-def switched_field(p: Params, st, s, F, w, v_cmd, a_cmd, x_ref, options: Options, F_gain=None):
-    """The rest of the field once the contact force F and the switch value w are known.
+def _times(w, x):
+    """w * x, written out at trace time when w is the number 0 or 1 (the sliding-mode rows), so the
+    compiled step does not carry multiplications by a constant 0."""
+    if isinstance(w, (int, float)):
+        return 0.0 if w == 0 else x if w == 1 else w * x
+    return w * x
 
-    `F_gain` is the force that modulates gamma (default F); the blend surrogate clamps it.
+
+def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None, F_memory=None):
+    """Robot i's nine rates (each (2, B)) once its contact force F and switch value w are known.
+
+    `w` may be an array (the hard or smooth switch) or the number 0 or 1 (the two fields the
+    sliding-mode integrator combines). `F_gamma` and `F_memory` are the forces that modulate gamma
+    (Eq. 8) and drive the memory Z (Eq. 9); both default to F. The switch-on field of the
+    sliding-mode integrator clamps them at F_lim (SLIDING.md, "Structure that makes it cheap").
+    Returns (rates, Aux); `rates["v_r"]` is the tip acceleration a_r.
     """
+    v_cmd, a_cmd, x_ref = command
+    off = 1.0 - w
+    F_gamma = F if F_gamma is None else F_gamma
+    F_memory = F if F_memory is None else F_memory
     # Gain modulation, Eq. 8 and 9 (the -(1-w) rho Z term realises the restart at each switch-on).
     Z = st["Z"]
-    F_gain = F if F_gain is None else F_gain
-    gamma = 1.0 - w * (p.K_ini + p.K_GP * (F_gain - p.F_lim) + p.K_GI * Z)
+    gamma = 1.0 - _times(w, p.K_ini + p.K_GP * (F_gamma - p.F_lim) + p.K_GI * Z)
     if options.gamma_min is not None:
         gamma = jnp.maximum(gamma, options.gamma_min)
-    dZ = w * (F - p.F_lim) - p.tau * Z - (1.0 - w) * p.rho * Z
+    dZ = _times(w, F_memory - p.F_lim) - p.tau * Z - _times(off, p.rho * Z)
 
     # Amnesia recovery, Eq. 10 and 11: only while force control is off.
     Y_e = st["Y_e"]
-    dY_e = (1.0 - w) * (x_ref - st["x_r"]) - p.tau_e * Y_e - w * p.rho * Y_e
-    v_ref = v_cmd + (1.0 - w) * p.G_e * Y_e
-    a_ref = a_cmd + (1.0 - w) * p.G_e * dY_e
+    dY_e = _times(off, x_ref - st["x_r"]) - p.tau_e * Y_e - _times(w, p.rho * Y_e)
+    v_ref = v_cmd + _times(off, p.G_e * Y_e)
+    a_ref = a_cmd + _times(off, p.G_e * dY_e)
 
     v_meas = st["v_r"] - (1.0 - p.alpha_b) * st["v_v"]
     base_coupling = (1.0 - p.alpha_b) * p.mu_H / p.M_v
@@ -157,15 +176,14 @@ def switched_field(p: Params, st, s, F, w, v_cmd, a_cmd, x_ref, options: Options
         p, v_ref, a_ref, v_meas, st["q_c"], st["x_f"], st["v_f"], gamma, -s * F, base_coupling
     )
     a_v = -p.mu_H * e_c / p.M_v  # reaction of the actuator on the free-floating base
-    a_o = (F[0] - F[1]) / p.M_b
+    rates = dict(x_r=st["v_r"], v_r=a_r, x_v=st["v_v"], v_v=a_v, q_c=err, x_f=st["v_f"], v_f=a_f, Z=dZ, Y_e=dY_e)
+    w_array = jnp.full_like(F, w) if isinstance(w, (int, float)) else w
+    return rates, Aux(F=F, w=w_array, gamma=jnp.broadcast_to(gamma, F.shape), x_ref=x_ref, v_ref=v_ref)
 
-    dy = pack(
-        dict(
-            x_r=st["v_r"], v_r=a_r, x_v=st["v_v"], v_v=a_v, q_c=err, x_f=st["v_f"], v_f=a_f,
-            Z=dZ, Y_e=dY_e, x_o=st["v_o"], v_o=a_o,
-        )
-    )
-    return dy, Aux(F=F, w=w, gamma=gamma, x_ref=x_ref, v_ref=v_ref)
+
+def body_field(p: Params, st, F):
+    """The body's rates: it feels only the two gripper forces (no switch acts on it)."""
+    return dict(x_o=st["v_o"], v_o=(F[0] - F[1]) / p.M_b)
 
 
 def momentum(params: Params, y: jax.Array) -> jax.Array:

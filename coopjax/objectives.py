@@ -79,8 +79,12 @@ def init(batch_shape, dtype) -> jax.Array:
     return acc.at[PEAK].set(-jnp.inf)
 
 
-def accumulate(acc, F, x_ref, x_r, params, k, win: Window):
-    """Fold the sample at step k (forces F, reference and tip positions, all (2, B)) into acc."""
+def accumulate(acc, F, x_ref, x_r, params, k, win: Window, F_impact=None):
+    """Fold the sample at step k (forces F, reference and tip positions, all (2, B)) into acc.
+
+    `F_impact` is the force just after an impact located inside the step (the sliding-mode
+    integrator's): sampling only the step grid can miss part of the jump, so the peak sees it too.
+    """
     F_lim = params.F_lim
     reached = jnp.maximum(acc[REACHED], (F >= F_lim).astype(F.dtype))
     in_grip = (k >= win.grip[0]) & (k <= win.grip[1])
@@ -96,7 +100,7 @@ def accumulate(acc, F, x_ref, x_r, params, k, win: Window):
         [
             jnp.stack([acc[SLIP] + slip, acc[CRUSH] + crush, acc[LAG_SQ] + lag_sq]),
             jnp.where(counted, jnp.minimum(acc[MIN], F), acc[MIN]),
-            jnp.maximum(acc[PEAK], F),
+            jnp.maximum(acc[PEAK], F if F_impact is None else jnp.maximum(F, F_impact)),
             reached,
             (acc[IMPACT] + impact)[None],
         ]

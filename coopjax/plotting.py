@@ -36,7 +36,7 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
     for i, r in enumerate("LR"):
         ax.plot(t, gamma[:, i], color=colours[r], label=f"gamma {r}")
     ax.axhline(1.0, color="k", lw=0.5)
-    ax.set_ylabel("compensation gain gamma (Eq. 8)")
+    ax.set_ylabel("gamma (Eq. 8; its time average while sliding)")
     ax.legend(loc="best", fontsize=8)
 
     ax = axes[2]

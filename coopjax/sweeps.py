@@ -14,11 +14,10 @@ results are gathered with `process_allgather`, and process 0 writes them.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
-import sys
-import time
 import zlib
 from typing import NamedTuple
 
@@ -27,6 +26,7 @@ import numpy as np
 from coopjax import objectives
 from coopjax.io import atomic_path
 from coopjax.params import PARAMETERS, split_name
+from coopjax.progress import Progress
 
 KINDS = ("uniform", "loguniform", "normal", "choice", "grid")
 METRICS = objectives.METRIC_NAMES
@@ -133,6 +133,7 @@ class SweepSpec(NamedTuple):
     T: float | None = None
     x64: bool = False
     table: tuple = ()  # ((name, values), ...) from --from
+    integrator: str | None = None  # None: filippov for the hard switch, rk4 otherwise
 
     def to_json(self) -> str:
         d = self._asdict()
@@ -144,12 +145,13 @@ class SweepSpec(NamedTuple):
 
 
 def make_spec(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard", dt=1e-3, T=None,
-              x64=False, table=None) -> SweepSpec:
+              x64=False, table=None, integrator=None) -> SweepSpec:
     """Validate and freeze a sweep description; raises ValueError on any mistake."""
-    from coopjax.integration import SimConfig
+    from coopjax.integration import SimConfig, default_integrator
     from coopjax.model import Options
 
-    SimConfig(scenario, Options(switch=switch), dt=float(dt), T=T).validate()
+    integrator = integrator or default_integrator(switch)
+    SimConfig(scenario, Options(switch=switch), integrator=integrator, dt=float(dt), T=T).validate()
     vary = dict(vary or {})
     fixed = dict(fixed or {})
     table = {k: np.asarray(v, np.float64) for k, v in (table or {}).items()}
@@ -170,7 +172,7 @@ def make_spec(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="h
     if n is None or n < 1:
         raise ValueError("say how many samples: --n N (or use grid axes, or --from a table)")
     return SweepSpec(scenario, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed), switch,
-                     float(dt), T, bool(x64), tuple((k, tuple(v)) for k, v in table.items()))
+                     float(dt), T, bool(x64), tuple((k, tuple(v)) for k, v in table.items()), integrator)
 
 
 def block_size(n: int) -> int:
@@ -180,6 +182,17 @@ def block_size(n: int) -> int:
     intermediates stay in cache.
     """
     return int(min(256, 2 ** math.ceil(math.log2(max(n, 8)))))
+
+
+@functools.lru_cache(maxsize=16)
+def _metrics_fn(config):
+    """One jitted metrics function per configuration, so repeated sweeps (tuning's selection and
+    judging call them many times) compile once, not once per call."""
+    import jax
+
+    from coopjax.integration import integrate
+
+    return jax.jit(lambda p: integrate(p, config).metrics)
 
 
 class _Runner:
@@ -194,11 +207,12 @@ class _Runner:
         self.spec = spec
         self.devices = list(devices)
         self.block = block_size(spec.n)
-        self.config = SimConfig(spec.scenario, Options(switch=spec.switch), dt=spec.dt, T=spec.T)
+        self.config = SimConfig(spec.scenario, Options(switch=spec.switch), integrator=spec.integrator, dt=spec.dt,
+                                T=spec.T)
         mesh = jax.sharding.Mesh(np.array(self.devices), ("batch",))
         self.per_robot = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, "batch"))
         self.shared = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-        self.run = jax.jit(lambda p: integrate(p, self.config).metrics)
+        self.run = _metrics_fn(self.config)
 
     @property
     def slab(self) -> int:
@@ -223,34 +237,6 @@ class _Runner:
             metrics = jax.device_get(self.run(params))
             out[start:stop] = np.stack([np.asarray(x, np.float64) for x in metrics], axis=1)[: stop - start]
         return out
-
-
-class Progress:
-    """A one-line progress bar on stderr with its rate and an ETA."""
-
-    def __init__(self, total: int, enabled: bool = True, label: str = "sweep", unit: str = "samples"):
-        self.total, self.done, self.enabled = total, 0, enabled
-        self.label, self.unit = label, unit
-        self.start = time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self.last_line = -1.0
-
-    def update(self, count: int) -> None:
-        self.done += count
-        if not self.enabled:
-            return
-        elapsed = max(time.perf_counter() - self.start, 1e-9)
-        rate = self.done / elapsed
-        frac = self.done / self.total
-        bar = "#" * int(30 * frac)
-        eta = (self.total - self.done) / rate if rate > 0 else float("inf")
-        line = (f"{self.label} [{bar:<30}] {self.done}/{self.total} {self.unit}, {rate:,.{0 if rate >= 10 else 2}f} "
-                f"{self.unit}/s, eta {eta:,.0f} s")
-        if self.tty:
-            print("\r" + line, end="" if self.done < self.total else "\n", file=sys.stderr, flush=True)
-        elif frac - self.last_line >= 0.1 or self.done == self.total:
-            self.last_line = frac
-            print(line, file=sys.stderr, flush=True)
 
 
 def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False,
@@ -360,14 +346,14 @@ def _prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chun
 
 
 def sweep(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard", dt=1e-3, T=None,
-          table=None, chunk=16384, progress=False):
+          table=None, chunk=16384, progress=False, integrator=None):
     """Notebook entry point: the sweep as a pandas DataFrame (or a dict of columns without pandas).
 
     Example: `sweep("carry", 1000, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.2:1"})`.
     """
     import jax
 
-    spec = make_spec(scenario, n, vary, fixed, seed, switch, dt, T, jax.config.jax_enable_x64, table)
+    spec = make_spec(scenario, n, vary, fixed, seed, switch, dt, T, jax.config.jax_enable_x64, table, integrator)
     columns = run(spec, chunk=chunk, progress=progress)
     try:
         import pandas as pd

@@ -38,7 +38,7 @@ def test_simulate_writes_csv_and_plot(fresh_dir, capsys):
         (["--dt", "0"], "dt is 0: it must be positive"),
         (["--T", "-1"], "T is -1: it must be positive"),
         (["--every", "0"], "at least 1"),
-        (["--dt", "0.02"], "too large for RK4"),
+        (["--dt", "0.02"], "too large for filippov"),
         (["--dt", "abc"], "invalid float value"),
         (["--out", "nowhere/run.csv"], "does not exist"),
         (["--plot", "fig.bmp"], "must end in one of"),

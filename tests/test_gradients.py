@@ -1,4 +1,8 @@
-"""Gradients of the carry objective against central finite differences, in both AD modes."""
+"""Gradients of the hard model against central finite differences, in both AD modes.
+
+Under the sliding-mode integrator the hard model has exact gradients (SLIDING.md, "Evidence"). The
+smooth surrogates' gradients are checked in test_tuning.py, on the objective the tuner uses.
+"""
 
 import jax
 import jax.numpy as jnp
@@ -8,40 +12,66 @@ import pytest
 import coopjax as cj
 
 GAINS = ("K_GP", "K_GI", "tau", "G_e")
-DT = 1e-4  # converged for the smooth model (see test_reference); 1e-3 is not, for carry
+TERMS = ("slip", "crush", "rms_lag", "impact")
+HARD_POINT = dict(K_GP=0.3, K_GI=0.2, tau=2.0, G_e=900.0)  # slides, loses some grip, and re-contacts: every term > 0
+HARD_MASS = 3.0  # kg
 
 
-def objective(theta, dt=DT):
-    params = cj.make_params(**dict(zip(GAINS, theta)), M_b=2.0)
-    metrics = cj.simulate(params, "carry", switch="smooth", dt=dt).metrics
-    return cj.loss(metrics)
+def hard_terms(theta, dt, M_b=HARD_MASS, checkpoint=True):
+    params = cj.make_params(**dict(zip(GAINS, theta)), M_b=M_b)
+    m = cj.simulate(params, "carry", dt=dt, check_dt=False, checkpoint=checkpoint).metrics
+    return jnp.stack([getattr(m, k) for k in TERMS], axis=0)
 
 
-@pytest.fixture(scope="module")
-def reference():
-    theta = np.array([0.5, 0.1, 1.25, 600.0])
-    fd = []
+@pytest.mark.parametrize("dt, checkpoint", [(1e-3, True), (2e-3, "nested")])
+def test_hard_model_gradients_match_finite_differences_in_both_modes(dt, checkpoint):
+    """d(slip, crush, lag, impact)/d(K_GP, K_GI, tau, G_e) of the hard model, filippov, at two step
+    sizes; reverse mode with per-step checkpointing at one and nested (sqrt n) at the other."""
+    theta = np.array([HARD_POINT[g] for g in GAINS])
+    forward = np.asarray(jax.jacfwd(hard_terms)(jnp.asarray(theta), dt))
+    # Reverse mode through one vector-Jacobian product with random weights on the four terms: every
+    # entry of the Jacobian enters it, and one backward pass compiles far faster than jacrev's four.
+    weights = np.random.default_rng(0).uniform(0.5, 1.5, len(TERMS)) / np.abs(forward).max(axis=1)
+    reverse = np.asarray(jax.grad(lambda th: jnp.dot(jnp.asarray(weights), hard_terms(th, dt, HARD_MASS, checkpoint)))(
+        jnp.asarray(theta)))
+    # Central differences, all eight perturbed runs in one batch. A relative step of 1e-6 stays
+    # clear of the switching events, which a larger step can cross.
+    h = 1e-6 * theta
+    shifted = np.repeat(theta[None], 8, 0)
     for i in range(4):
-        h = 1e-5 * theta[i]
-        e = np.zeros(4)
-        e[i] = h
-        fd.append((float(objective(theta + e)) - float(objective(theta - e))) / (2 * h))
-    return theta, np.array(fd)
+        shifted[2 * i, i] += h[i]
+        shifted[2 * i + 1, i] -= h[i]
+    values = np.asarray(hard_terms(jnp.asarray(shifted.T), dt, M_b=np.full(8, HARD_MASS)))  # (4 terms, 8)
+    fd = (values[:, 0::2] - values[:, 1::2]) / (2 * h)
+    assert np.all(np.asarray(hard_terms(jnp.asarray(theta), dt)) > 0)  # every term is active
+    assert np.all(np.abs(fd) > 0)
+    scale = np.abs(fd).max(axis=1, keepdims=True)  # per term: an element tiny against its row gets an absolute floor
+    error = np.abs(forward - fd)
+    assert np.all(error <= 1e-4 * np.abs(fd) + 1e-6 * scale), error / np.abs(fd)
+    fd_weighted = weights @ fd
+    np.testing.assert_allclose(reverse, fd_weighted, rtol=1e-4, atol=1e-6 * np.abs(fd_weighted).max())
+    np.testing.assert_allclose(reverse, weights @ forward, rtol=1e-9)
 
 
-def test_reverse_mode_matches_finite_differences(reference):
-    theta, fd = reference
-    grad = np.asarray(jax.grad(objective)(jnp.asarray(theta)))
-    np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+def test_plain_rk4_finite_differences_of_the_hard_model_are_noise():
+    """Why the sliding-mode step matters for tuning: under plain RK4 the hard switch chatters, and
+    central differences of the lag with respect to K_GP at two nearby relative steps disagree."""
+    theta = np.array([HARD_POINT[g] for g in GAINS])
+    shifted = np.repeat(theta[None], 8, 0)
+    for j, rel in enumerate((1e-4, 1e-6)):
+        shifted[2 * j, 0] *= 1 + rel
+        shifted[2 * j + 1, 0] *= 1 - rel
+    shifted = shifted[:4]
+    fd = {}
+    for integrator in ("rk4", "filippov"):
+        params = cj.make_params(**{g: shifted[:, i] for i, g in enumerate(GAINS)}, M_b=np.full(4, HARD_MASS))
+        lag = np.asarray(cj.simulate(params, "carry", integrator=integrator, dt=1e-3).metrics.rms_lag)
+        fd[integrator] = [(lag[0] - lag[1]) / (2e-4 * theta[0]), (lag[2] - lag[3]) / (2e-6 * theta[0])]
+    assert abs(fd["filippov"][0] / fd["filippov"][1] - 1) < 1e-2  # a smooth function of K_GP
+    assert abs(fd["rk4"][0] / fd["rk4"][1] - 1) > 0.5, fd  # noise
 
 
-def test_forward_mode_matches_finite_differences_and_reverse(reference):
-    theta, fd = reference
-    jac = np.asarray(jax.jacfwd(objective)(jnp.asarray(theta)))
-    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
-    assert np.all(np.abs(fd) > 0)  # each gain really moves the objective
-
-
+@pytest.mark.slow
 def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
     from coopjax.integration import SimConfig, integrate
     from coopjax.model import Options

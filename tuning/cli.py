@@ -43,7 +43,7 @@ def add_parser(sub, check_output):
     p.add_argument("--surrogate", default="blend", help=f"training switch: {', '.join(SURROGATES)} (default blend; see docs/tuning.md)")
     p.add_argument("--no-anneal", dest="anneal", action="store_false", help="keep the narrow surrogate widths from the start")
     p.add_argument("--dt", type=float, default=d.objective.dt, help=f"training RK4 step in s (default {d.objective.dt:g})")
-    p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"hard-model step for judging (default {JUDGE_DT:g})")
+    p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"step of the hard model (sliding-mode integrator) for validation and judging, s (default {JUDGE_DT:g})")
     p.add_argument("--select", type=int, default=20, help="judge the last N iterates on validation masses and keep the best (default 20; 1 = the final iterate)")
     p.add_argument("--held-out", type=int, default=12, help="held-out masses for judging (default 12, ends included)")
     p.add_argument("--aggregate", default="mean", help="mean (default) or smoothmax over the mass batch")
@@ -158,7 +158,7 @@ def _tune_and_report(args, config, base, held_out, files) -> int:
     state = tune(config, base, checkpoint=files["checkpoint"], resume=args.resume, log=log, progress=args.quiet)
     start_gains = dict(config.start)
     tuned, selection = _select_iterate(args, config, base, state)
-    print(f"judging with the hard model, float64, dt = {args.judge_dt:g} s, on {len(held_out)} held-out masses "
+    print(f"judging with the hard model (filippov), float64, dt = {args.judge_dt:g} s, on {len(held_out)} held-out masses "
           f"from {held_out[0]:.3g} to {held_out[-1]:.3g} kg ...")
     before, after = judge([start_gains, tuned], held_out, base, config.objective.weights, args.judge_dt)
     result = {
@@ -167,7 +167,7 @@ def _tune_and_report(args, config, base, held_out, files) -> int:
         "before": _row(before),
         "after": _row(after),
         "held_out_masses": [float(m) for m in held_out],
-        "judge": {"switch": "hard", "contact": "unilateral", "dtype": "float64", "dt": args.judge_dt,
+        "judge": {"switch": "hard", "contact": "unilateral", "integrator": "filippov", "dtype": "float64", "dt": args.judge_dt,
                   "hold_tolerance_N": HOLD_TOLERANCE},
         "weights": config.objective.weights._asdict(),
         "config": json.loads(config.to_json()),
@@ -260,8 +260,8 @@ def _plots(config, base, held_out, start_gains, tuned, state, files, judge_dt):
     runs = {}
     for label, gains in (("Table 1 gains", start_gains), ("tuned gains", tuned)):
         params = base.replace(M_b=ends, **gains)
-        runs[label] = cj.simulate(params, "carry", switch="hard", dt=judge_dt, every=max(1, round(2e-3 / judge_dt)),
-                                  check_dt=False).trajectory
+        runs[label] = cj.simulate(params, "carry", switch="hard", integrator="filippov", dt=judge_dt,
+                                  every=max(1, round(1e-3 / judge_dt)), check_dt=False).trajectory
     plot_traces(runs, ends, float(np.asarray(base.F_lim).min()), float(np.asarray(base.F_max)), files["traces"])
 
 

@@ -3,8 +3,9 @@
 - `training_loss` is differentiable: the carry scenario with smooth surrogates (or straight-through),
   one trajectory per drawn body mass, the per-mass loss `coopjax.loss` averaged over the masses (or
   a smooth maximum of it). Gains enter in log space, so every iterate is positive.
-- `judge` is the verdict: the hard switch and contact, float64, a step at which the hard model has
-  converged, on held-out masses that the training draws never hit.
+- `judge` is the verdict: the hard switch and contact under the sliding-mode integrator (`filippov`),
+  float64, at a step within MODEL.md's tolerances of the dt -> 0 limit, on held-out masses that the
+  training draws never hit.
 """
 
 from __future__ import annotations
@@ -26,10 +27,14 @@ GAINS = ("K_GP", "K_GI", "tau", "G_e")
 # The issue's random-search box (log-uniform). The tuner's iterates are clipped to it too, so every
 # tuner searches the same space. Other tunable names get their default x/÷ 100.
 BOUNDS = {"K_GP": (0.05, 100.0), "K_GI": (0.001, 10.0), "tau": (0.05, 50.0), "G_e": (1.0, 3000.0)}
-# The hard switch holds F on F = F_lim by sliding, with chatter of size O(dt) below it (9.999 N at
-# dt = 5e-5, docs/model.md). "Holds the grip" therefore means min_grip >= F_lim - HOLD_TOLERANCE.
+# The hard switch holds F on F = F_lim by sliding. The sliding-mode integrator keeps F on the surface
+# to round-off, but its limit itself can dip a little below F_lim while the motion enters the
+# surface, so "holds the grip" means min_grip >= F_lim - HOLD_TOLERANCE.
 HOLD_TOLERANCE = 0.01  # N
-JUDGE_DT = 5e-5  # s: the largest step at which the hard carry run's min grip and lag converged
+# s: filippov met MODEL.md's tolerances on 16 of 16 samples at 2e-3 and 1e-3 (docs/model.md, "Step
+# size"). 1e-3 keeps a factor 2 from the stability limit of Table 1's gains (about 4e-3 s), which
+# shrinks as K_GP grows; a tuned gain set must not be judged on a step it cannot take.
+JUDGE_DT = 1e-3
 
 
 def bounds(name: str) -> tuple[float, float]:
@@ -242,7 +247,7 @@ def judge(gains: dict[str, float] | list[dict[str, float]], masses: np.ndarray, 
     fixed = _fixed_from(base, set().union(*map(set, sets)))
     table = {n: np.repeat([float(g[n]) for g in sets], M) for n in sets[0]}
     table["M_b"] = np.tile(masses, G)
-    spec = sweeps.make_spec("carry", None, {}, fixed, 0, "hard", dt, None, True, table)
+    spec = sweeps.make_spec("carry", None, {}, fixed, 0, "hard", dt, None, True, table, "filippov")
     columns = sweeps.run(spec, chunk=max(G * M, 1), progress=progress)
     F_lim = float(np.asarray((base or cj.make_params()).F_lim).min())
     verdicts = [_verdict({k: columns[k][g * M:(g + 1) * M] for k in sweeps.METRICS}, weights, F_lim) for g in range(G)]

@@ -24,7 +24,7 @@ import optax
 import coopjax as cj
 from coopjax.io import atomic_path
 from coopjax.params import Params
-from coopjax.sweeps import Progress
+from coopjax.progress import Progress
 from tuning.objective import (GAINS, NARROW, WIDE, Objective, Surrogate, draw_masses, from_log, held_out_masses,
                               log_bounds, to_log, training_loss)
 

@@ -1,4 +1,10 @@
-"""Fixed-step RK4 under `lax.scan`, with per-sample divergence flags and streaming metrics.
+"""The integration loop shared by every integrator: `lax.scan` over fixed steps, streaming metrics and
+per-sample divergence flags.
+
+An integrator is a module with `step(params, y, t, dt, scenario, options) -> (y_next, aux, F_impact)`
+and `observe(params, y, t, dt, scenario, options) -> aux`: `rk4` (plain RK4, any switch) and
+`filippov` (the sliding-mode step for the hard switch, SLIDING.md). `F_impact` is the contact force
+just after a located impact (or None), which the peak metric must see (MODEL.md section 7).
 
 The jit boundary is `simulate`: everything below it is pure and unjitted, so it composes with
 `jax.grad`, `jax.jacfwd` and `jax.vmap`. Static settings (scenario, switch, dt, T, ...) live in a
@@ -16,14 +22,54 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax import model, objectives
+from coopjax.integration import filippov, plain_rk4
 from coopjax.params import Params, as_batched, check_positive
 from coopjax.scenarios import get_scenario
+
+INTEGRATORS = {"filippov": filippov, "rk4": plain_rk4}
+
+
+# Largest steps measured to be within MODEL.md section 8's tolerances of the dt -> 0 limit of the
+# same model (benchmarks/convergence.py; docs/model.md, "Step size"). None: no step tried reached
+# them on every sample. A combination missing here was not measured.
+CONVERGED_DT = {
+    ("carry", "hard", "filippov"): 2e-3,  # 16 of 16 samples, at 2e-3 and every finer step
+    ("carry", "hard", "rk4"): None,  # 10 of 16 samples at 1e-5; some gain sets need ~1e-7
+    ("carry", "straight_through", "rk4"): None,  # its forward pass is the hard model under plain RK4
+    ("carry", "smooth", "rk4"): 1e-4,  # the smooth model's own limit, which is not the hard model's
+    ("paper", "hard", "filippov"): 1e-3,  # no sliding: forces within 1e-3 N of rk4 at 1e-4
+    ("paper", "hard", "rk4"): 1e-3,
+    ("paper", "smooth", "rk4"): 1e-3,
+}
+
+
+def step_size_note(scenario: str, switch: str, integrator: str, dt: float) -> str | None:
+    """A sentence for a user whose step is coarser than the model needs, or None."""
+    key = (scenario, switch, integrator)
+    if key not in CONVERGED_DT:
+        return None
+    converged = CONVERGED_DT[key]
+    if converged is None:
+        return (f"note: plain rk4 chatters across F = F_lim with the {switch} switch; in the {scenario} scenario "
+                "it met MODEL.md's tolerances on only 10 of 16 samples even at dt = 1e-5 (docs/model.md, "
+                "'Step size'). --integrator filippov meets them at dt = 1e-3")
+    if dt > converged * (1 + 1e-9):
+        return (f"note: {scenario} with the {switch} switch and {integrator} needs dt <= {converged:g} s to be "
+                f"within MODEL.md's tolerances of the dt -> 0 limit (docs/model.md, 'Step size'); this run "
+                f"used dt = {dt:g} s")
+    return None
+
+
+def default_integrator(switch: str) -> str:
+    """The sliding-mode step for the hard switch; plain RK4 for the smooth surrogates."""
+    return "filippov" if switch == "hard" else "rk4"
 
 
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
     scenario: str = "carry"
     options: model.Options = model.Options()
+    integrator: str | None = None  # "filippov" | "rk4"; None: filippov for the hard switch, else rk4
     dt: float = 1e-3  # s
     T: float | None = None  # s; None takes the scenario's horizon
     every: int | None = None  # record every N steps; None records nothing (metrics only)
@@ -32,7 +78,11 @@ class SimConfig:
     # of steps, one carry each); "nested" also checkpoints blocks of sqrt(n) steps, so memory grows
     # with sqrt(n) at the cost of one more forward pass; False stores every intermediate.
     checkpoint: bool | str = True
-    unroll: int = 4  # lax.scan unroll of the inner loop: ~13% faster on CPU than 1 (measured)
+    unroll: int = 1  # lax.scan unroll: 2 and 4 compiled 1.5-2x slower and ran no faster (measured)
+
+    @property
+    def method(self) -> str:
+        return self.integrator or default_integrator(self.options.switch)
 
     @property
     def horizon(self) -> float:
@@ -46,6 +96,11 @@ class SimConfig:
     def validate(self) -> "SimConfig":
         get_scenario(self.scenario)
         model.check_options(self.options)
+        if self.method not in INTEGRATORS:
+            raise ValueError(f"unknown integrator {self.method!r}; choose one of: {', '.join(INTEGRATORS)}")
+        if self.method == "filippov" and self.options.switch != "hard":
+            raise ValueError(f"the filippov integrator is for the hard switch (it treats it as a sliding mode); "
+                             f"the {self.options.switch} switch runs with rk4 (--integrator rk4, or integrator='rk4')")
         check_positive("dt", self.dt)
         if self.T is not None:
             check_positive("T", self.T)
@@ -76,20 +131,10 @@ class Solution(NamedTuple):
     trajectory: Trajectory | None
 
 
-def rk4(f, t, y, dt, k1=None):
-    """One classical RK4 step of dy/dt = f(t, y); pass k1 = f(t, y) if already known."""
-    k1 = f(t, y) if k1 is None else k1
-    k2 = f(t + dt / 2, y + (dt / 2) * k1)
-    k3 = f(t + dt / 2, y + (dt / 2) * k2)
-    k4 = f(t + dt, y + dt * k3)
-    return y + (dt / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
-
-
 def step(params: Params, y: jax.Array, t, config: SimConfig) -> jax.Array:
-    """The pure closed-loop step: state at t -> state at t + dt."""
-    scenario = get_scenario(config.scenario)
-    f = lambda t, y: model.vector_field(params, y, t, scenario, config.options)[0]
-    return rk4(f, t, y, config.dt)
+    """The pure closed-loop step of the configured integrator: state at t -> state at t + dt."""
+    method = INTEGRATORS[config.method]
+    return method.step(params, y, t, config.dt, get_scenario(config.scenario), config.options)[0]
 
 
 def integrate(params: Params, config: SimConfig) -> Solution:
@@ -103,16 +148,18 @@ def integrate(params: Params, config: SimConfig) -> Solution:
     dtype = params.M_b.dtype
     batch = params.batch_shape
 
-    def field(t, y):
-        return model.vector_field(params, y, t, scenario, options)
+    method = INTEGRATORS[config.method]
+
+    def observe(t, y):
+        return method.observe(params, y, t, dt, scenario, options)
 
     def advance(carry, k):
         y, acc, diverged, t_div = carry
         t = k.astype(dtype) * dt
-        k1, aux = field(t, y)
+        y_new, aux, F_impact = method.step(params, y, t, dt, scenario, options)
         x_r = model.unpack(y)["x_r"]
-        acc = jnp.where(diverged[None], acc, objectives.accumulate(acc, aux.F, aux.x_ref, x_r, params, k, win))
-        y_new = rk4(lambda t, y: field(t, y)[0], t, y, dt, k1)
+        acc_new = objectives.accumulate(acc, aux.F, aux.x_ref, x_r, params, k, win, F_impact)
+        acc = jnp.where(diverged[None], acc, acc_new)
         # A non-finite state or an absurd force freezes the sample at its last good state, so its
         # garbage never reaches the metrics; the other samples are independent by construction.
         bad = ~jnp.isfinite(y_new).all(0) | (jnp.abs(aux.F) > config.force_bound).any(0)
@@ -155,7 +202,7 @@ def integrate(params: Params, config: SimConfig) -> Solution:
         def block(carry, kb):
             k0 = kb * every
             y = carry[0]
-            record = (k0.astype(dtype) * dt, y, field(k0.astype(dtype) * dt, y)[1])
+            record = (k0.astype(dtype) * dt, y, observe(k0.astype(dtype) * dt, y))
             return run(carry, k0, every), record
 
         carry, records = jax.lax.scan(block, carry, jnp.arange(n_blocks, dtype=jnp.int32))
@@ -165,7 +212,7 @@ def integrate(params: Params, config: SimConfig) -> Solution:
     # The final sample t_N = T, which no step started from.
     y, acc, diverged, t_div = carry
     t_end = jnp.asarray(n * dt, dtype)
-    aux_end = field(t_end, y)[1]
+    aux_end = observe(t_end, y)
     x_r = model.unpack(y)["x_r"]
     acc_end = objectives.accumulate(acc, aux_end.F, aux_end.x_ref, x_r, params, jnp.int32(n), win)
     acc = jnp.where(diverged[None], acc, acc_end)
@@ -194,13 +241,14 @@ def simulate(
     *,
     switch: str = "hard",
     contact: str = "unilateral",
+    integrator: str | None = None,
     dt: float = 1e-3,
     T: float | None = None,
     every: int | None = None,
     gamma_min: float | None = None,
     force_bound: float = 1e6,
     checkpoint: bool | str = True,
-    unroll: int = 4,
+    unroll: int = 1,
     check_dt: bool = True,
 ) -> Solution:
     """Simulate one parameter set or a batch of them (leaves with a trailing batch axis).
@@ -211,7 +259,10 @@ def simulate(
       switch: "hard" (the reference), "smooth" or "straight_through" (MODEL.md section 4), or "blend"
         (the switch-off and switch-on fields mixed by the smooth switch; see docs/tuning.md).
       contact: "unilateral" (default) or "bilateral".
-      dt: RK4 step, s. Checked against the fastest mode of the linearised loop (`check_dt`).
+      integrator: "filippov" (the default for the hard switch: the sliding-mode step of SLIDING.md,
+        converged at dt = 1e-3) or "rk4" (plain RK4; the only choice for the smooth surrogates, and
+        with the hard switch a chattering, O(dt) approximation kept for comparison).
+      dt: step, s. Checked against the fastest mode of the linearised loop (`check_dt`).
       T: horizon, s; default the scenario's.
       every: record the state and signals every this many steps; None keeps only metrics.
 
@@ -221,6 +272,7 @@ def simulate(
     config = SimConfig(
         scenario=scenario,
         options=model.Options(switch=switch, contact=contact, gamma_min=gamma_min),
+        integrator=integrator,
         dt=float(dt) if isinstance(dt, (int, float)) else dt,
         T=None if T is None else (float(T) if isinstance(T, (int, float)) else T),
         every=every,
