@@ -170,15 +170,16 @@ def substep(p, st, s, clock: Clock, h, contact, scenario, options, first: Fields
     return _axpy(st, h / 6, total), f1
 
 
-def impact_fraction(p, st, s, f: Fields, dt):
+def impact_fraction(p, st, s, a_r_off, a_o, dt):
     """theta_c (B,) and the robots that hit (2, B): SLIDING.md, "Impacts".
 
     The contact time solves delta + delta_dot tau + delta_ddot tau^2 / 2 = 0, written without
     cancellation as tau = -2 delta / (delta_dot + sqrt(delta_dot^2 - 2 delta_ddot delta)). For a robot
-    out of contact the step-start field `f` is the contact-free one, so delta_ddot comes from it.
+    out of contact the step-start switch-off field is the contact-free one, so delta_ddot comes from
+    its tip acceleration a_r_off and the body's a_o.
     """
     delta, delta_dot, _ = model.geometry(p, st, s)
-    delta_ddot = s * (f.off["v_r"] - f.body["v_o"][None])
+    delta_ddot = s * (a_r_off - a_o[None])
     disc = delta_dot**2 - 2.0 * delta_ddot * delta
     real = (delta <= 0.0) & (disc > 0.0)
     denominator = delta_dot + jnp.sqrt(jnp.where(real, disc, 1.0))
@@ -192,18 +193,24 @@ def impact_fraction(p, st, s, f: Fields, dt):
 
 
 def step(params, y, t, dt, scenario, options):
-    """y(t) -> (y(t + dt), Aux at t, force just after a located impact): the loop's step protocol."""
+    """y(t) -> (y(t + dt), F and x_ref at t, force just after a located impact): the loop's step protocol."""
     p = params
     st = model.unpack(y)
     s = model.sign(y.ndim - 1, y.dtype)
     clock = Clock.at(t)
-    start = fields(p, st, s, clock, None, scenario, options)
-    aux_start = aux(start, weight(start, start.sigma, jnp.full(y.shape[1:], dt, y.dtype)))
+    # At the step start the metrics need only F and x_ref, and the impact prediction only the
+    # switch-off field: the switch-on field and the weight are left to the stages.
+    delta, delta_dot, kelvin = model.geometry(p, st, s)
+    F = kelvin if options.contact == "bilateral" else jnp.where(delta > 0.0, jnp.maximum(kelvin, 0.0), 0.0)
+    command = scenario.command(p, clock)
     if options.contact == "bilateral":  # no impacts: one RK4 step
-        st_new, _ = substep(p, st, s, clock, jnp.full(y.shape[1:], dt, y.dtype), None, scenario, options, start)
-        return model.pack(st_new), aux_start, None
+        h = jnp.full(y.shape[1:], dt, y.dtype)
+        st_new, _ = substep(p, st, s, clock, h, None, scenario, options)
+        return model.pack(st_new), F, command[2], None
+    off, _ = model.robot_field(p, st, s, F, 0.0, command, options)
+    a_o = model.body_field(p, st, F)["v_o"]
 
-    theta_c, hits = impact_fraction(p, st, s, start, dt)
+    theta_c, hits = impact_fraction(p, st, s, off["v_r"], a_o, dt)
     h1 = theta_c * dt
     h2 = dt - h1  # exactly 0 without an impact
     no = jnp.zeros_like(hits)
@@ -217,7 +224,7 @@ def step(params, y, t, dt, scenario, options):
 
     xs = (jnp.stack([jnp.zeros_like(h1), h1]), jnp.stack([h1, h2]), jnp.stack([no, hits]), jnp.stack([hits, no]))
     st_new, first_F = jax.lax.scan(part, st, xs)
-    return model.pack(st_new), aux_start, first_F[1]
+    return model.pack(st_new), F, command[2], first_F[1]
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:

@@ -1,8 +1,8 @@
 """The integration loop shared by every integrator: `lax.scan` over fixed steps, streaming metrics and
 per-sample divergence flags.
 
-An integrator is a module with `step(params, y, t, dt, scenario, options) -> (y_next, aux, F_impact)`
-and `observe(params, y, t, dt, scenario, options) -> aux`: `rk4` (plain RK4, any switch) and
+An integrator is a module with `step(params, y, t, dt, scenario, options) -> (y_next, F, x_ref, F_impact)`
+(F and x_ref at t, for the metrics) and `observe(params, y, t, dt, scenario, options) -> aux`: `rk4` (plain RK4, any switch) and
 `filippov` (the sliding-mode step for the hard switch, SLIDING.md). `F_impact` is the contact force
 just after a located impact (or None), which the peak metric must see (MODEL.md section 7).
 
@@ -156,13 +156,13 @@ def integrate(params: Params, config: SimConfig) -> Solution:
     def advance(carry, k):
         y, acc, diverged, t_div = carry
         t = k.astype(dtype) * dt
-        y_new, aux, F_impact = method.step(params, y, t, dt, scenario, options)
+        y_new, F, x_ref, F_impact = method.step(params, y, t, dt, scenario, options)
         x_r = model.unpack(y)["x_r"]
-        acc_new = objectives.accumulate(acc, aux.F, aux.x_ref, x_r, params, k, win, F_impact)
+        acc_new = objectives.accumulate(acc, F, x_ref, x_r, params, k, win, F_impact)
         acc = jnp.where(diverged[None], acc, acc_new)
         # A non-finite state or an absurd force freezes the sample at its last good state, so its
         # garbage never reaches the metrics; the other samples are independent by construction.
-        bad = ~jnp.isfinite(y_new).all(0) | (jnp.abs(aux.F) > config.force_bound).any(0)
+        bad = ~jnp.isfinite(y_new).all(0) | (jnp.abs(F) > config.force_bound).any(0)
         t_div = jnp.where(bad & ~diverged, t + dt, t_div)
         diverged = diverged | bad
         y = jnp.where(diverged[None], y, y_new)

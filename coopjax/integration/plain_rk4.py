@@ -20,13 +20,13 @@ def rk4(f, t, y, dt, k1=None):
 
 
 def step(params, y, t, dt, scenario, options):
-    """y(t) -> (y(t + dt), Aux at t, None): the loop's step protocol (no located impact force)."""
+    """y(t) -> (y(t + dt), F and x_ref at t, None): the loop's step protocol (no located impact force)."""
 
     def field(t, y):
         return model.vector_field(params, y, Clock.at(t), scenario, options)
 
     k1, aux = field(t, y)
-    return rk4(lambda t, y: field(t, y)[0], t, y, dt, k1), aux, None
+    return rk4(lambda t, y: field(t, y)[0], t, y, dt, k1), aux.F, aux.x_ref, None
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:
