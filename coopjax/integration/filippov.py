@@ -147,14 +147,14 @@ RK4_A = (0.5, 0.5, 1.0)
 RK4_B = (2.0, 2.0, 1.0)  # over 6
 
 
-def substep(p, st, s, clock: Clock, h, contact, scenario, options, first: Fields | None = None):
+def substep(p, st, s, clock: Clock, h, contact, scenario, options):
     """RK4 over a (sub)step of per-sample length h (B,), each stage with its Filippov weight.
 
     Stages 2-4 run as a `lax.scan` over the tableau: one stage body for XLA to compile instead of a
     chain of them. Unrolled, the differentiated step took 28 s to compile (measured), growing faster
     than the chain's length. Returns the new state and the fields at the first stage.
     """
-    f1 = fields(p, st, s, clock, contact, scenario, options) if first is None else first
+    f1 = fields(p, st, s, clock, contact, scenario, options)
     sigma_n = f1.sigma  # every stage's theta uses sigma at the substep start (SLIDING.md step 2)
     k1 = combine(f1, weight(f1, sigma_n, h))
 
@@ -218,13 +218,13 @@ def step(params, y, t, dt, scenario, options):
     # Up to the impact, the hitting robot's contact is off; after it, on. Both substeps run as one
     # `lax.scan` body, so XLA compiles the stage once (see `substep`).
     def part(st, xs):
-        offset, h, on, off = xs
-        st_new, first = substep(p, st, s, clock.advance(offset), h, Contact(on, off), scenario, options)
-        return st_new, first.F
+        offset, h, forced_on, forced_off = xs
+        st_new, start = substep(p, st, s, clock.advance(offset), h, Contact(forced_on, forced_off), scenario, options)
+        return st_new, start.F
 
     xs = (jnp.stack([jnp.zeros_like(h1), h1]), jnp.stack([h1, h2]), jnp.stack([no, hits]), jnp.stack([hits, no]))
-    st_new, first_F = jax.lax.scan(part, st, xs)
-    return model.pack(st_new), F, command[2], first_F[1]
+    st_new, start_F = jax.lax.scan(part, st, xs)
+    return model.pack(st_new), F, command[2], start_F[1]  # F just after the impact: the 2nd substep's start
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:
