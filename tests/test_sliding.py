@@ -95,11 +95,13 @@ def test_paper_scenario_is_unchanged():
     def forces(**kwargs):
         sol = cj.simulate(cj.make_params(), "paper", every=int(round(0.5 / kwargs["dt"])), **kwargs)
         t, F = np.asarray(sol.trajectory.t), np.asarray(sol.trajectory.aux.F)
-        return np.array([F[np.argmin(np.abs(t - tq))] for tq in times])
+        return np.array([F[np.argmin(np.abs(t - tq))] for tq in times]), float(sol.metrics.min_grip)
 
-    ours = forces(integrator="filippov", dt=1e-3)
-    np.testing.assert_allclose(ours, forces(integrator="rk4", dt=1e-4), atol=1e-3)
+    ours, min_grip = forces(integrator="filippov", dt=1e-3)
+    theirs, their_min_grip = forces(integrator="rk4", dt=1e-4)
+    np.testing.assert_allclose(ours, theirs, atol=1e-3)
     np.testing.assert_allclose(ours[:, 0], [71.835, 65.342, 50.839, 55.000], atol=1e-3)
+    assert abs(min_grip - their_min_grip) < 0.05  # the crossing counts, not the first grid sample after it
 
 
 def test_filippov_is_the_default_for_the_hard_switch_and_refuses_smooth_ones():
