@@ -75,8 +75,8 @@ def _broadcast(x, like):
 
 
 def _axpy(st, c, k):
-    """st + c k over the state dict; c is a scalar or per sample (B,)."""
-    return {q: st[q] + _broadcast(c, st[q]) * k[q] if jnp.ndim(c) else st[q] + c * k[q] for q in st}
+    """st + c k over the state dict; c is per sample (B,)."""
+    return {q: st[q] + _broadcast(c, st[q]) * k[q] for q in st}
 
 
 def fields(p, st, s, clock: Clock, contact: Contact | None, scenario, options) -> Fields:
