@@ -6,8 +6,6 @@ file. Files are written atomically, only after the run succeeded.
 
 from __future__ import annotations
 
-import argparse
-import math
 import os
 import shutil
 import sys
@@ -15,40 +13,9 @@ import time
 
 import numpy as np
 
-EXIT_BAD_INPUT = 2
-EXIT_DIVERGED = 1
+from coopjax.cliutil import EXIT_BAD_INPUT, EXIT_DIVERGED, BadInput, Parser, check_output, parse_assignment
+
 PLOT_FORMATS = ("png", "pdf", "svg")
-
-
-class BadInput(Exception):
-    pass
-
-
-class Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse's own mistakes: one line, exit 2
-        raise BadInput(f"{message} (see `{self.prog} --help`)")
-
-
-def parse_assignment(text: str) -> tuple[str, float]:
-    """`NAME=VALUE` -> (NAME, float(VALUE)), with a clear message otherwise."""
-    name, sep, value = text.partition("=")
-    if not sep or not name or not value:
-        raise BadInput(f"--set expects NAME=VALUE, got {text!r}")
-    try:
-        number = float(value)
-    except ValueError:
-        raise BadInput(f"--set {name}: {value!r} is not a number") from None
-    if not math.isfinite(number):
-        raise BadInput(f"--set {name}: {value!r} is not finite")
-    return name.strip(), number
-
-
-def check_output(path: str, what: str, extensions=None) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise BadInput(f"{what} {path!r}: folder {folder!r} does not exist")
-    if extensions and path.rsplit(".", 1)[-1].lower() not in extensions:
-        raise BadInput(f"{what} {path!r}: the file name must end in one of .{', .'.join(extensions)}")
 
 
 def resolve_integrator(args) -> str:
@@ -139,7 +106,7 @@ def build_parser() -> Parser:
 
     from tuning.cli import add_parser as add_tune_parser
 
-    add_tune_parser(sub, check_output)
+    add_tune_parser(sub)
     sub.add_parser("params", help="list every parameter with its default, unit and meaning")
     return parser
 
@@ -330,7 +297,7 @@ def main(argv=None) -> int:
         if args.command == "tune":
             from tuning.cli import cmd_tune
 
-            return cmd_tune(args, check_output)
+            return cmd_tune(args)
         return cmd_simulate(args)
     except (BadInput, ValueError) as error:
         print(f"coopjax: error: {error}", file=sys.stderr)

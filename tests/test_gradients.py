@@ -1,7 +1,7 @@
 """Gradients of the hard model against central finite differences, in both AD modes.
 
 Under the sliding-mode integrator the hard model has exact gradients (SLIDING.md, "Evidence"). The
-smooth surrogates' gradients are checked in test_tuning.py, on the objective the tuner uses.
+tuner's constrained objective, built on these, is checked the same way in test_tuning.py.
 """
 
 import jax

@@ -27,7 +27,7 @@ def test_smooth_model_agrees_with_scipy_radau(scenario, T, dt):
 
 
 def test_blend_model_agrees_with_scipy_radau():
-    """The blend surrogate (tuning's default) against the reference's own blend, over grip and carry."""
+    """The blend surrogate (a `coopjax tune --switch` option) against the reference's own blend, over grip and carry."""
     gains = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0, M_b=2.0)
     dt, T = 1e-4, 2.0
     sol = cj.simulate(cj.make_params(**gains), "carry", switch="blend", dt=dt, T=T, every=100)
@@ -53,3 +53,21 @@ def test_rk4_converges_with_order_four():
     errors = np.array([np.max(np.abs(run(dt) - exact)) for dt in dts])
     order = np.polyfit(np.log(dts), np.log(errors), 1)[0]
     assert 3.7 < order < 4.4, (order, errors)
+
+
+def test_blend_surrogate_tracks_the_hard_sliding_motion_where_smooth_substitution_does_not():
+    """MODEL.md section 4's sigmoid substitution does not converge to the hard model on F = F_lim.
+
+    On the sliding surface the hard switch's chatter averages the switch-off and switch-on fields
+    (Filippov); substituting a fractional w into a field that is nonlinear in w gives another motion.
+    The blend surrogate averages the fields, so it keeps the hard model's crush and grip.
+    """
+    gains = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0, M_b=1.5)
+    hard = cj.simulate(cj.make_params(**gains), "carry", switch="hard", dt=1e-3).metrics  # filippov: the dt -> 0 limit
+    narrow = dict(k_F=0.05, k_c=0.05, eps_delta=1e-5)
+    blend = cj.simulate(cj.make_params(**gains, **narrow), "carry", switch="blend", dt=5e-5, check_dt=False).metrics
+    smooth = cj.simulate(cj.make_params(**gains, **narrow), "carry", switch="smooth", dt=5e-5, check_dt=False).metrics
+    assert float(hard.min_grip) >= 10.0 - 0.01
+    assert abs(float(blend.min_grip) - float(hard.min_grip)) < 0.5
+    assert abs(float(blend.crush) / float(hard.crush) - 1) < 0.15
+    assert float(smooth.crush) / float(hard.crush) > 2.0

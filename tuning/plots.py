@@ -1,4 +1,4 @@
-"""Figures of a tuning run: loss curve, grip traces before/after, tuner comparison, Pareto front."""
+"""Figures of tuning: per-start history, grip traces before/after, the race, the Pareto front."""
 
 from __future__ import annotations
 
@@ -22,24 +22,34 @@ def _save(fig, path):
     _pyplot().close(fig)
 
 
-def plot_loss(history: dict, path: str, title: str) -> None:
-    """Training loss per step, with the surrogate width k_F and any rejected moves."""
+def plot_history(history: dict, path: str, config) -> None:
+    """Each start's objective and grip shortfall against the step."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     steps = np.asarray(history["step"]) + 1
-    ax.semilogy(steps, history["loss"], "o-", ms=3, label="training loss (this step's mass batch)")
-    rejected = np.asarray(history["rejected"]) > 0
-    if rejected.any():
-        ax.semilogy(steps[rejected], np.asarray(history["loss"])[rejected], "rx", ms=8, label="after a rejected move")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss (slip, crush, lag and impact, weighted)")
-    ax.set_title(title)
-    twin = ax.twinx()
-    twin.plot(steps, history["k_F"], color="grey", ls=":", label="switch width k_F [N]")
-    twin.set_ylabel("surrogate width k_F [N]", color="grey")
-    lines = ax.get_legend_handles_labels()
-    more = twin.get_legend_handles_labels()
-    ax.legend(lines[0] + more[0], lines[1] + more[1], fontsize=8, loc="upper right")
+    f = np.asarray(history["f"], float)
+    short = np.asarray(history["shortfall"], float)
+    holds = np.asarray(history["holds"], bool)
+    for k in range(f.shape[1]):
+        line, = a.semilogy(steps, f[:, k], lw=1, label=f"start {k}" + (" (Table 1)" if k == 0 else ""))
+        a.plot(steps[holds[:, k]], f[holds[:, k], k], ".", color=line.get_color(), ms=4)
+        b.semilogy(steps, np.maximum(short[:, k], 1e-4), lw=1, color=line.get_color())
+    finite = f[np.isfinite(f)]
+    if finite.size:  # a start that blows up for one step must not flatten everyone else's curve
+        a.set_ylim(0.9 * finite.min(), 1.1 * min(finite.max(), 10 * np.percentile(finite, 90)))
+    a.set_xlabel("step")
+    a.set_ylabel("objective f: smooth max of peak + w_lag x lag [N]")
+    a.set_title("objective per start (dots: holds at every training mass)", fontsize=10)
+    a.legend(fontsize=7, ncol=2)
+    b.set_xlabel("step")
+    b.set_ylabel("worst RMS grip shortfall below F_lim [N] (floored at 1e-4)")
+    b.set_title("the constraint: 0 while the grip holds", fontsize=10)
+    for ax in (a, b):
+        ax.grid(alpha=0.3)
+    p = config.problem
+    what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
+    fig.suptitle(f"tuning {what} on the {p.switch} model (dt = {p.dt:g} s), {config.starts} starts x "
+                 f"{p.n_masses} masses, {config.resolved_mode} mode")
     _save(fig, path)
 
 
@@ -72,46 +82,60 @@ def plot_traces(runs: dict, masses, F_lim: float, F_max: float, path: str) -> No
     _save(fig, path)
 
 
-def plot_compare(traces: dict, path: str) -> None:
-    """Best training loss so far against trajectories and against wall time, one line per tuner."""
+def plot_race(result: dict, path: str) -> None:
+    """Best-so-far validated objective against wall time: median and worst over seeds, per tuner."""
     plt = _pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.3), constrained_layout=True)
-    for name, tr in traces.items():
-        a.semilogy(tr["trajectories"], tr["loss"], label=name)
-        b.semilogy(tr["wall"], tr["loss"], label=name)
-    a.set_xlabel("simulated trajectories")
-    b.set_xlabel("wall time [s]")
-    for ax in (a, b):
-        ax.set_ylabel("best training loss so far")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle("tuners on the same objective and trajectory budget")
+    fig, ax = plt.subplots(figsize=(8.5, 5), constrained_layout=True)
+    horizon = max(r["budget_s"] for r in result["per_seed"])
+    grid = np.linspace(0.0, horizon, 400)
+    colors = {"gradient": "tab:blue", "CMA-ES": "tab:orange", "random search": "tab:green"}
+    for name, color in colors.items():
+        values = []
+        for r in result["per_seed"]:
+            curve = r["curves"][name]
+            v = np.full(grid.shape, np.inf)
+            for t, score in curve:  # a step function: the running choice from time t on
+                v[grid >= t] = score
+            values.append(v)
+        values = np.array(values)
+        median, worst = np.median(values, 0), values.max(0)
+        ax.plot(grid, np.where(np.isfinite(median), median, np.nan), color=color, lw=2, label=f"{name}: median")
+        ax.plot(grid, np.where(np.isfinite(worst), worst, np.nan), color=color, lw=1, ls="--", label=f"{name}: worst")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time [s] (compilation excluded, reported apart)")
+    ax.set_ylabel("validated objective: worst peak + w_lag x worst lag [N]")
+    ax.set_title(f"{len(result['names'])} parameters, seeds {result['seeds']}: each tuner's choice so far, judged on "
+                 "validation masses\n(no line yet: nothing that holds the grip at every validation mass)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
     _save(fig, path)
 
 
-def plot_pareto(points: list[dict], reference: list[dict], path: str) -> None:
-    """Worst-case peak force against worst-case RMS lag, for gain sets that hold the grip."""
+def plot_pareto(rows: list[dict], path: str) -> None:
+    """Worst-case peak force against worst-case RMS lag on the held-out masses, for each tuner."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5), constrained_layout=True)
-    held = [r for r in reference if r["holds"]]
-    if held:
-        ax.scatter([r["rms_lag"] * 1e3 for r in held], [r["peak_grip"] for r in held], marker="x", color="grey",
-                   label=f"random gain sets that hold ({len(held)} of {len(reference)})")
-    tuned = [p for p in points if p["holds"]]
-    if tuned:
-        order = sorted(tuned, key=lambda p: p["rms_lag"])
-        ax.plot([p["rms_lag"] * 1e3 for p in order], [p["peak_grip"] for p in order], "o-", color="tab:blue",
-                label="tuned, one per lag weight")
-        for p in order:
-            ax.annotate(f"w_lag={p['w_lag']:g}", (p["rms_lag"] * 1e3, p["peak_grip"]), fontsize=7,
-                        xytext=(4, 4), textcoords="offset points")
-    lost = [p for p in points if not p["holds"]]
-    if lost:
-        ax.scatter([p["rms_lag"] * 1e3 for p in lost], [p["peak_grip"] for p in lost], facecolors="none",
-                   edgecolors="tab:red", label="tuned, but loses the grip (not on the front)")
+    random = [r for r in rows if r["tuner"] == "random search"]
+    held = [r for r in random if r["holds"]]
+    if random:
+        ax.scatter([r["rms_lag_mm"] for r in held], [r["peak_grip"] for r in held], marker="x", color="grey", s=14,
+                   label=f"random search: sets that held in training ({len(held)} of {len(random)} hold here)")
+    for tuner, color, marker in (("gradient", "tab:blue", "o"), ("CMA-ES", "tab:orange", "s")):
+        pts = sorted((r for r in rows if r["tuner"] == tuner), key=lambda r: r["rms_lag_mm"])
+        ok = [r for r in pts if r["holds"]]
+        if ok:
+            ax.plot([r["rms_lag_mm"] for r in ok], [r["peak_grip"] for r in ok], marker + "-", color=color,
+                    label=f"{tuner}, one run per lag weight")
+            for r in ok:
+                ax.annotate(f"w={r['w_lag']:g}", (r["rms_lag_mm"], r["peak_grip"]), fontsize=7, xytext=(4, 4),
+                            textcoords="offset points", color=color)
+        lost = [r for r in pts if not r["holds"]]
+        if lost:
+            ax.scatter([r["rms_lag_mm"] for r in lost], [r["peak_grip"] for r in lost], facecolors="none",
+                       edgecolors=color, marker=marker, label=f"{tuner}: loses the grip on a held-out mass")
     ax.set_xlabel("worst-case RMS lag over held-out masses [mm]")
-    ax.set_ylabel("worst-case peak grip force [N]")
-    ax.set_title("what the four gains can reach (hard model, held-out masses)")
+    ax.set_ylabel("worst-case peak grip force over held-out masses [N]")
+    ax.set_title("the peak / lag front (hard model, held-out masses)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     _save(fig, path)

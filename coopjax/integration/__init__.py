@@ -4,6 +4,6 @@
 - `filippov`: the sliding-mode step for the hard switch (SLIDING.md), the default for it.
 """
 
-from coopjax.integration.loop import (INTEGRATORS, SimConfig, Solution, Trajectory, default_integrator, integrate,
+from coopjax.integration.loop import (CONVERGED_DT, INTEGRATORS, SimConfig, Solution, Trajectory, default_integrator, integrate,
                                       simulate, step)
 from coopjax.integration.plain_rk4 import rk4
