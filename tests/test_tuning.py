@@ -126,20 +126,22 @@ def test_a_start_whose_step_blows_up_goes_back_halfway_and_the_others_go_on(monk
 
 
 def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh_dir, capsys):
-    code = cli.main(["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2",
-                     "--params", "gains", "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--mode", "forward", "--out", "tuned.json",
-                     "--quiet"])
+    code = cli.main(["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
+                     "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--mode", "forward",
+                     "--out", "tuned.json", "--quiet"])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "holds >= F_lim" in out
     result = json.load(open("tuned.json"))
     assert set(result["params"]) == {"K_GP", "K_GI", "tau", "G_e"}
     assert result["judge"]["dt"] == obj.JUDGE_DT and result["judge"]["integrator"] == "filippov"
-    fresh = obj.judge(result["params"], np.asarray(result["held_out_masses"]))
+    # The same two sets through the Python API, in one batch as the CLI does: Table 1's gains lose
+    # the grip, and a released body's impacts amplify rounding differences between batch shapes.
+    paper, fresh = obj.judge([dict(opt.PAPER_GAINS), result["params"]], np.asarray(result["held_out_masses"]),
+                             w_lag=result["config"]["problem"]["w_lag"])
     for key in ("min_grip", "peak_grip", "rms_lag", "objective"):
         assert result["after"][key] == pytest.approx(getattr(fresh, key), rel=1e-12), key
-    paper = obj.judge(dict(opt.PAPER_GAINS), np.asarray(result["held_out_masses"]))
-    assert result["before"]["peak_grip"] == pytest.approx(paper.peak_grip, rel=1e-12)
+        assert result["before"][key] == pytest.approx(getattr(paper, key), rel=1e-12), key
     assert (fresh_dir / "tuned_history.png").stat().st_size > 10_000
     assert (fresh_dir / "tuned_traces.png").stat().st_size > 10_000
     assert not (fresh_dir / "tuned.json.ckpt.npz").exists()
@@ -187,7 +189,7 @@ def test_the_race_gives_each_tuner_the_gradient_tuners_clock_and_validates_their
     from tuning import race
 
     config = dataclasses.replace(CONFIG, steps=2)
-    result = race.run(config, BASE, seeds=[0, 1], log=lambda s: None)
+    result = race.run(config, BASE, seeds=[3], log=lambda s: None)
     for row in result["per_seed"]:
         assert row["evaluations"]["gradient"] == 2 * config.starts
         for name in race.TUNERS:

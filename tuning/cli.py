@@ -293,8 +293,8 @@ def _compare(args, config, base, files) -> int:
 
 
 def _pareto(args, config, base, held_out, files) -> int:
-    from tuning import baselines
-    from tuning.objective import judge, log_bounds, select, to_log, validation_masses
+    from tuning import baselines, race
+    from tuning.objective import from_log, judge, log_bounds, select, to_log, validation_masses
     from tuning.optimize import candidates, tune
     from tuning.plots import plot_pareto
 
@@ -311,9 +311,11 @@ def _pareto(args, config, base, held_out, files) -> int:
         options = candidates(state, names)
         points["gradient"].append((w_lag, options[select(options, masses, base, w_lag, args.judge_dt)[0]]))
         theta0 = np.clip(to_log(config.start_values, names), *log_bounds(names))
-        record = baselines.cma_es(baselines.Evaluator(problem, base, F_lim, config.seed), names, state.elapsed, theta0, config.seed)
-        best = record.best_so_far()[-1]
-        points["CMA-ES"].append((w_lag, dict(zip(names, np.exp(record.thetas[best])))))
+        record = baselines.cma_es(baselines.Evaluator(problem, base, F_lim, config.seed), names, state.elapsed, theta0,
+                                  config.seed)
+        # As in the race: CMA-ES's running choices, and the one the validation masses prefer.
+        options = [from_log(record.thetas[i], names) for _, i in race.snapshots(record)] or [from_log(theta0, names)]
+        points["CMA-ES"].append((w_lag, options[select(options, masses, base, w_lag, args.judge_dt)[0]]))
         if random_record is None:  # one run: its cloud does not depend on the weight
             random_record = baselines.random_search(baselines.Evaluator(problem, base, F_lim, config.seed), names, state.elapsed,
                                                     config.seed)

@@ -246,8 +246,9 @@ def tune(config: TuneConfig, base: Params | None = None, checkpoint: str | None 
         elapsed = time.perf_counter() - session_start
         trajectories = state.trajectories + K * config.problem.n_masses
         h = state.history
-        for name, value in (("step", k), ("theta", state.theta.tolist()), ("f", _list(f)), ("holds", holds.tolist()), ("shortfall", _list(c.max(1))), ("L", _list(L)),
-                            ("rejected", int((~ok).sum())), ("trajectories", trajectories), ("wall", elapsed)):
+        for name, value in (("step", k), ("theta", state.theta.tolist()), ("f", _list(f)), ("holds", holds.tolist()),
+                            ("shortfall", _list(c.max(1))), ("L", _list(L)), ("rejected", int((~ok).sum())),
+                            ("trajectories", trajectories), ("wall", elapsed)):
             h[name].append(value)
         state = TuneState(k + 1, theta, good, scale, retries, opt_state, mult, best_theta, best_f, h, trajectories,
                           elapsed)
