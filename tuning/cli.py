@@ -231,7 +231,7 @@ def _select(args, config, base, state):
     options = candidates(state, config.problem.names)
     masses = validation_masses(config.problem)
     print(f"selecting among {len(options)} candidates (each start's best holding iterate and its last): hard model on "
-          f"{len(masses)} validation masses ({', '.join(f'{m:.3g}' for m in masses)} kg; none of them held out) ...")
+          f"{len(masses)} validation masses from {masses[0]:.3g} to {masses[-1]:.3g} kg (none of them held out) ...")
     chosen, verdicts = select(options, masses, base, config.problem.w_lag, args.judge_dt)
     v = verdicts[chosen]
     held = sum(x.holds for x in verdicts)
