@@ -338,8 +338,14 @@ def select(candidates: list[dict], masses, base: Params | None = None, w_lag: fl
     This is model selection, not judging: validation masses are never the held-out ones.
     """
     verdicts = judge(list(candidates), masses, base, w_lag, dt)
+    return preferred(verdicts), verdicts
+
+
+def preferred(verdicts: list[Verdict]) -> int:
+    """`select`'s rule: the first verdict that holds with the lowest objective (or, if none holds, the
+    lowest objective)."""
     key = lambda i: (not verdicts[i].holds, verdicts[i].objective if np.isfinite(verdicts[i].objective) else np.inf)
-    return min(range(len(candidates)), key=key), verdicts
+    return min(range(len(verdicts)), key=key)
 
 
 def _fixed_from(base: Params | None, tuned: set) -> dict[str, float]:

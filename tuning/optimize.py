@@ -203,7 +203,7 @@ def tune(config: TuneConfig, base: Params | None = None, checkpoint: str | None 
     if checkpoint and os.path.exists(checkpoint):
         if not resume:
             raise ValueError(f"{checkpoint} holds an earlier tuning run: add --resume to continue it, or delete it")
-        state = load_checkpoint(checkpoint, config, base)
+        state = load_checkpoint(checkpoint, config)
         log(f"resumed from {checkpoint} at step {state.step} of {config.steps}")
     if state is None:
         state = init(config, base)
@@ -296,7 +296,7 @@ def save_checkpoint(path: str, config: TuneConfig, state: TuneState) -> None:
                      meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
 
 
-def load_checkpoint(path: str, config: TuneConfig, base: Params) -> TuneState:
+def load_checkpoint(path: str, config: TuneConfig) -> TuneState:
     try:
         data = np.load(path)
         meta = json.loads(bytes(data["meta"]).decode())

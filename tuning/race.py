@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tuning import baselines
-from tuning.objective import from_log, held_out_masses, judge, log_bounds, to_log, validation_masses
+from tuning.objective import from_log, held_out_masses, judge, log_bounds, preferred, to_log, validation_masses
 from tuning.optimize import TuneConfig, candidates, init, tune, value_and_grad_fn
 
 TUNERS = ("gradient", "CMA-ES", "random search")
@@ -100,9 +100,8 @@ def run(config: TuneConfig, base, seeds, log=print, progress: bool = False) -> d
         raw = {name: [] for name in records}
         for (name, t, p), v in zip(flat, verdicts):
             raw[name].append((t, v.score, p))
-        # `select`'s rule (holds first, then the lowest objective) on the verdicts already computed.
         last = verdicts[-len(options):]
-        pick = min(range(len(options)), key=lambda i: (not last[i].holds, np.nan_to_num(last[i].objective, nan=np.inf)))
+        pick = preferred(last)  # `select`'s rule, on the verdicts already computed
         chosen = {"gradient": options[pick]}
         for name in ("CMA-ES", "random search"):
             chosen[name] = min(raw[name], key=lambda x: x[1])[2] if raw[name] else None
