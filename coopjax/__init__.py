@@ -6,5 +6,6 @@ from coopjax.objectives import Metrics, Weights, loss
 from coopjax.params import PARAMETERS, Params, make_params
 from coopjax.scenarios import SCENARIOS
 from coopjax.sweeps import sweep
+from coopjax.analysis import linearize
 
 __version__ = "0.1.0"

@@ -144,13 +144,14 @@ def _times(w, x):
     return w * x
 
 
-def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None, F_memory=None):
+def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None, F_memory=None, f_env=None):
     """Robot i's nine rates (each (2, B)) once its contact force F and switch value w are known.
 
     `w` may be an array (the hard or smooth switch) or the number 0 or 1 (the two fields the
     sliding-mode integrator combines). `F_gamma` and `F_memory` are the forces that modulate gamma
     (Eq. 8) and drive the memory Z (Eq. 9); both default to F. The switch-on field of the
     sliding-mode integrator clamps them at F_lim (SLIDING.md, "Structure that makes it cheap").
+    `f_env` is an external force on each tip along +x (the input of the linear analysis; None in runs).
     Returns (rates, Aux); `rates["v_r"]` is the tip acceleration a_r.
     """
     v_cmd, a_cmd, x_ref = command
@@ -172,8 +173,9 @@ def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None,
 
     v_meas = st["v_r"] - (1.0 - p.alpha_b) * st["v_v"]
     base_coupling = (1.0 - p.alpha_b) * p.mu_H / p.M_v
+    f_ext = -s * F if f_env is None else f_env - s * F
     err, e_c, a_r, a_f = controller(
-        p, v_ref, a_ref, v_meas, st["q_c"], st["x_f"], st["v_f"], gamma, -s * F, base_coupling
+        p, v_ref, a_ref, v_meas, st["q_c"], st["x_f"], st["v_f"], gamma, f_ext, base_coupling
     )
     a_v = -p.mu_H * e_c / p.M_v  # reaction of the actuator on the free-floating base
     rates = dict(x_r=st["v_r"], v_r=a_r, x_v=st["v_v"], v_v=a_v, q_c=err, x_f=st["v_f"], v_f=a_f, Z=dZ, Y_e=dY_e)

@@ -92,3 +92,95 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1])
     plt.close(fig)
+
+
+def _save(fig, path):
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1])
+    plt.close(fig)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_bode(report: dict, path: str) -> None:
+    """Driving-point admittance: the linearised simulator (lines) with Eq. 4 over it (dots)."""
+    plt = _pyplot()
+    omega = report["omega"]
+    fig, (mag, phase) = plt.subplots(2, 1, figsize=(8, 7), sharex=True, constrained_layout=True)
+    every = max(1, len(omega) // 40)
+    for k, row in enumerate(report["bode"]):
+        c = f"C{k}"
+        label = f"alpha = {row['alpha']:g}"
+        mag.loglog(omega, np.abs(row["simulator"]), color=c, label=f"{label}: simulator (jacfwd)")
+        mag.loglog(omega[::every], np.abs(row["eq4"][::every]), "o", color=c, ms=4, mfc="none", label=f"{label}: Eq. 4")
+        phase.semilogx(omega, np.degrees(np.angle(row["simulator"])), color=c)
+        phase.semilogx(omega[::every], np.degrees(np.angle(row["eq4"][::every])), "o", color=c, ms=4, mfc="none")
+    mag.set_ylabel("|Y(j omega)| = |V_r / E_env|  [m/(N s)]")
+    mag.set_title(f"Driving-point admittance of robot {report['robot']} (grip cut, gamma frozen at alpha)")
+    mag.legend(fontsize=8, ncol=2)
+    mag.grid(True, which="both", alpha=0.3)
+    phase.set_ylabel("phase [deg]")
+    phase.set_xlabel("angular frequency omega [rad/s]")
+    phase.grid(True, which="both", alpha=0.3)
+    _save(fig, path)
+
+
+def plot_k_rob(report: dict, path: str) -> None:
+    """Static stiffness against alpha: the simulator's steady state (dots) with Eq. 5 (line)."""
+    plt = _pyplot()
+    k = report["k_rob"]
+    fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
+    ax.semilogy(k["alpha_fine"], k["eq5_fine"], "-", color="k", lw=1, label="Eq. 5: 1/K = 1/(mu_H K_c) + beta_H (1 - alpha)/(mu_H K_f)")
+    ax.semilogy(k["alpha"], k["simulator"], "o", color="C1", ms=5, mfc="none", label="simulator: static deflection under a constant effort")
+    ax.set_xlabel("alpha (gamma frozen)")
+    ax.set_ylabel("driving-point stiffness K_rob [N/m]")
+    ax.set_title(f"Robot {report['robot']}: stiffness softens as gamma falls (Eq. 5; Eq. 7 at alpha = 1)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_poles(report: dict, path: str) -> None:
+    """Closed-loop poles at rest and at the force limit, over RK4's stability region at dt."""
+    from coopjax.stability import rk4_amplification
+
+    plt = _pyplot()
+    dt = report["dt"]
+    fig, (wide, near) = plt.subplots(1, 2, figsize=(12, 5.5), constrained_layout=True)
+    x = np.linspace(-3.2, 0.6, 600) / dt
+    y = np.linspace(-3.2, 3.2, 600) / dt
+    X, Y = np.meshgrid(x, y)
+    stable = rk4_amplification((X + 1j * Y) * dt) <= 1
+    styles = {"rest": ("o", "C0", "at rest (force control off)"), "limit": ("x", "C3", "at the force limit (Eq. 8 on)")}
+    for ax, span in ((wide, None), (near, 30.0)):
+        ax.contourf(X, Y, stable, levels=[0.5, 1.5], colors=["#d9ead3"])
+        ax.contour(X, Y, stable.astype(float), levels=[0.5], colors=["#38761d"], linewidths=1)
+        for point, poles in report["poles"].items():
+            marker, c, label = styles[point]
+            s = report["poles_summary"][point]
+            ax.plot(poles.real, poles.imag, marker, color=c, ms=6, mfc="none" if marker == "o" else c,
+                    label=f"{label}: fastest {s['fastest']:.4g} 1/s, RK4 needs dt <= {s['rk4_dt_limit']:.3g} s")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.axvline(0, color="k", lw=0.5)
+        ax.set_xlabel("Re(lambda) [1/s]")
+        ax.set_ylabel("Im(lambda) [1/s]")
+        if span:
+            ax.set_xlim(-span, 0.2 * span)
+            ax.set_ylim(-span, span)
+            ax.set_title(f"zoom on the slow modes (|lambda| < {span:g} 1/s)")
+    allp = np.concatenate(list(report["poles"].values()))
+    reach = max(np.abs(allp).max() * 1.3, 3.0 / dt)
+    wide.set_xlim(-reach, 0.2 * reach)
+    wide.set_ylim(-0.7 * reach, 0.7 * reach)
+    wide.set_title(f"closed-loop poles; green: RK4 stable at dt = {dt:g} s (|R(lambda dt)| <= 1)")
+    wide.legend(fontsize=8, loc="upper left")
+    _save(fig, path)
