@@ -42,7 +42,8 @@ def build_parser() -> Parser:
     parser = Parser(
         prog="coopjax",
         description="Differentiable simulator of two cooperating space robots with virtual-foundation "
-        "force control (Pathak et al.). See MODEL.md in the docs for the equations.",
+        "force control (Pathak et al.). The equations: docs/model.md in the project; tuning: docs/tuning.md; "
+        "linear analysis: docs/analysis.md.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
@@ -71,16 +72,22 @@ def build_parser() -> Parser:
     )
     sim.add_argument("--scenario", default="paper", help=f"one of: {', '.join(SCENARIOS)} (default: paper)")
     sim.add_argument("--contact", default="unilateral", help="unilateral (default) or bilateral")
-    sim.add_argument("--every", type=int, default=None, help="record every N steps (default: every 10 ms)")
-    sim.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv)")
-    sim.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions")
+    sim.add_argument("--every", type=int, default=None, help="write every N-th step to the CSV (default: every 10 ms)")
+    sim.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv). Columns: t [s]; F_L, F_R "
+                     "[N]; gamma_L, gamma_R [1]; w_L, w_R [1]; x_ref_L, x_ref_R [m]; then the 20 states (x_* [m], "
+                     "v_* [m/s], q_c [m], Z [N s], Y_e [m s])")
+    sim.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions "
+                     "(from every step, with the located peak marked)")
 
     sw = sub.add_parser(
         "sweep", parents=[common],
         help="run many parameter sets (Monte-Carlo, grid or a table) and write one row of metrics each",
         description="Sweep the closed loop over parameter sets, sharded over this machine's CPU cores, in "
         "resumable chunks. DIST is uniform:a:b, loguniform:a:b, normal:mean:sd, choice:v1,v2,... or "
-        "grid:a:b:k (grid axes form a full factorial and imply --n).",
+        "grid:a:b:k (grid axes form a full factorial and imply --n). Table columns: sample; the varied "
+        "parameters (units: `coopjax params`); min_grip [N], peak_grip [N], slip [N^2], crush [N^2], rms_lag [m], "
+        "impact [N^2], finite [1 if trusted, else 0], t_diverged [s], dt_limit [s: the largest stable step of the "
+        "linearised loop], status [ok | diverged | unstable_loop | step_beyond_limit].",
     )
     sw.add_argument("--scenario", default="carry", help="carry (default) or paper")
     sw.add_argument("--n", type=int, default=None, help="number of samples (implied by grid axes or --from)")
@@ -94,8 +101,8 @@ def build_parser() -> Parser:
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.add_argument("--coordinator", default=os.environ.get("COOPJAX_COORDINATOR"), metavar="HOST:PORT",
                     help="jax.distributed coordinator (or COOPJAX_COORDINATOR)")
-    sw.add_argument("--num-processes", type=int, default=_env_int("COOPJAX_NUM_PROCESSES"), help="(or COOPJAX_NUM_PROCESSES)")
-    sw.add_argument("--process-id", type=int, default=_env_int("COOPJAX_PROCESS_ID"), help="(or COOPJAX_PROCESS_ID)")
+    sw.add_argument("--num-processes", type=int, default=None, help="number of processes (or COOPJAX_NUM_PROCESSES)")
+    sw.add_argument("--process-id", type=int, default=None, help="this process, 0 to N-1 (or COOPJAX_PROCESS_ID)")
 
     ps = sub.add_parser("plot-sweep", help="scatter a metric against a parameter, with histograms of the metrics")
     ps.add_argument("table", help="a sweep table (.csv or .parquet)")
@@ -128,42 +135,48 @@ def build_parser() -> Parser:
     return parser
 
 
-def _env_int(name):
-    value = os.environ.get(name)
-    return int(value) if value and value.isdigit() else None
+def _env_int(flag, value, name):
+    """A flag's value, else the environment variable's, which must then be a whole number."""
+    if value is not None or not os.environ.get(name):
+        return value
+    text = os.environ[name].strip()
+    if not text.isdigit():
+        raise BadInput(f"{name}={text!r} (for {flag}) is not a whole number")
+    return int(text)
+
+
+def _unique(items, flag):
+    names = [text.partition("=")[0].strip() for text in items]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise BadInput(f"{flag} {repeated[0]} is given more than once: give each name once")
 
 
 def cmd_sweep(args) -> int:
     import jax
 
+    args.num_processes = _env_int("--num-processes", args.num_processes, "COOPJAX_NUM_PROCESSES")
+    args.process_id = _env_int("--process-id", args.process_id, "COOPJAX_PROCESS_ID")
     distributed = [args.coordinator, args.num_processes, args.process_id]
     if any(v is not None for v in distributed) and not all(v is not None for v in distributed):
         raise BadInput("--coordinator, --num-processes and --process-id go together")
+    if args.num_processes is not None and not (args.num_processes >= 1 and 0 <= args.process_id < args.num_processes):
+        raise BadInput(f"--process-id {args.process_id} must be between 0 and --num-processes - 1 = {args.num_processes - 1}")
+    if args.devices is not None and args.devices < 1:
+        raise BadInput(f"--devices is {args.devices}: it must be at least 1")
     devices = args.devices or os.cpu_count() or 1
-    if devices < 1:
-        raise BadInput(f"--devices is {devices}: it must be at least 1")
+    _unique(args.vary, "--vary")
+    _unique(args.set, "--set")
     check_output(args.out, "--out", ("csv", "parquet"))
-    if args.out.endswith(".parquet"):
+    if args.out.lower().endswith(".parquet"):
         try:
             import pandas  # noqa: F401
             import pyarrow  # noqa: F401
         except ImportError:
             raise BadInput("writing Parquet needs pandas and pyarrow: pip install 'coopjax[sweep]', or use --out sweep.csv")
 
-    from coopjax import sweeps
-
-    table = None
-    if args.from_file:
-        if not os.path.exists(args.from_file):
-            raise BadInput(f"--from {args.from_file!r}: no such file")
-        table = sweeps.read_table(args.from_file)
-        table.pop("sample", None)
-    spec = sweeps.make_spec(
-        args.scenario, args.n, dict(_parse_vary(v) for v in args.vary), dict(parse_assignment(s) for s in args.set),
-        args.seed, args.switch, args.dt, args.T, args.x64, table, resolve_integrator(args),
-    )
-    # Set here, in the entry point, and only now that the input is known to be good: the device
-    # count is fixed once JAX's backend starts (a caller that already started it keeps its own).
+    # Set here, in the entry point, before anything creates an array: the device count is fixed once
+    # JAX's backend starts (a caller that already started it keeps its own). No file is touched yet.
     try:
         jax.config.update("jax_num_cpu_devices", devices)
     except RuntimeError:
@@ -173,6 +186,23 @@ def cmd_sweep(args) -> int:
     if all(v is not None for v in distributed):
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    from coopjax import sweeps
+
+    table = None
+    if args.from_file:
+        table = sweeps.read_table(args.from_file, "--from")
+        # A previous sweep's table may be fed back: its result columns are not parameters.
+        for name in ("sample",) + sweeps.COLUMNS_PER_SAMPLE:
+            table.pop(name, None)
+        if not table:
+            raise BadInput(f"--from {args.from_file!r} has no parameter columns (`coopjax params` lists the names)")
+        for name, column in table.items():
+            if column.dtype.kind != "f":
+                raise BadInput(f"--from {args.from_file!r}: column {name!r} holds values that are not numbers")
+    spec = sweeps.make_spec(
+        args.scenario, args.n, dict(_parse_vary(v) for v in args.vary), dict(parse_assignment(s) for s in args.set),
+        args.seed, args.switch, args.dt, args.T, args.x64, table, resolve_integrator(args),
+    )
     parts = args.out + ".parts"
     start = time.perf_counter()
     columns = sweeps.run(spec, chunk=args.chunk, parts=parts, resume=args.resume, progress=not args.quiet)
@@ -181,9 +211,11 @@ def cmd_sweep(args) -> int:
         shutil.rmtree(parts, ignore_errors=True)
         elapsed = time.perf_counter() - start
         finite = np.asarray(columns["finite"])
+        status = np.asarray(columns["status"])
+        flagged = ", ".join(f"{int((status == s).sum())} {s}" for s in sweeps.STATUSES[1:] if (status == s).any())
         print(f"coopjax sweep: {spec.n} samples of {spec.scenario} in {elapsed:.1f} s on "
               f"{jax.device_count()} device(s) x {jax.process_count()} process(es); "
-              f"{int((~finite).sum())} diverged")
+              f"{int(finite.sum())} ok" + (f", flagged: {flagged} (see the status column)" if flagged else ""))
         for name in ("min_grip", "peak_grip", "rms_lag"):
             v = np.asarray(columns[name])[finite]
             if v.size:
@@ -204,13 +236,15 @@ def cmd_plot_sweep(args) -> int:
     from coopjax import sweeps
     from coopjax.plotting import plot_sweep
 
-    if not os.path.exists(args.table):
-        raise BadInput(f"{args.table!r}: no such file")
     check_output(args.out, "--out", PLOT_FORMATS)
     columns = sweeps.read_table(args.table)
     for name in (args.x, args.y, args.color):
         if name is not None and name not in columns:
             raise BadInput(f"no column {name!r} in {args.table}; it has: {', '.join(columns)}")
+        if name is not None and columns[name].dtype.kind != "f":
+            raise BadInput(f"column {name!r} of {args.table} is not numeric")
+    if "finite" not in columns:
+        raise BadInput(f"{args.table} is not a sweep table: it has no 'finite' column")
     plot_sweep(columns, args.x, args.y, args.color, args.out)
     print(f"wrote {args.out}")
     return 0
@@ -237,17 +271,25 @@ def cmd_simulate(args) -> int:
     from coopjax.plotting import plot_run
 
     check_output(args.out, "--out", ("csv",))
-    if args.plot:
+    if args.plot is not None:
         check_output(args.plot, "--plot", PLOT_FORMATS)
+    _unique(args.set, "--set")
     overrides = dict(parse_assignment(s) for s in args.set)
     every = args.every if args.every is not None else max(1, int(round(0.01 / args.dt))) if args.dt > 0 else 1
     params = make_params(**overrides)
+    # Every step is recorded (a plot must show the true peak); the CSV takes every `every`-th.
+    from coopjax.integration import SimConfig
+    from coopjax.model import Options
+
+    SimConfig(args.scenario, Options(switch=args.switch, contact=args.contact), resolve_integrator(args), args.dt,
+              args.T, every=every).validate()
     solution = simulate(
         params, args.scenario, switch=args.switch, contact=args.contact, integrator=resolve_integrator(args),
-        dt=args.dt, T=args.T, every=every,
+        dt=args.dt, T=args.T, every=1,
     )
 
-    traj = solution.trajectory
+    full = solution.trajectory
+    traj = jax.tree_util.tree_map(lambda x: x[::every], full)
     columns = {"t": traj.t}
     for name, signal in (("F", traj.aux.F), ("gamma", traj.aux.gamma), ("w", traj.aux.w), ("x_ref", traj.aux.x_ref)):
         for i, r in enumerate("LR"):
@@ -257,8 +299,8 @@ def cmd_simulate(args) -> int:
     from coopjax.io import write_csv
 
     write_csv(args.out, columns)
-    if args.plot:
-        plot_run(traj, params, args.scenario, args.plot)
+    if args.plot is not None:
+        plot_run(full, params, args.scenario, args.plot, peak=float(solution.metrics.peak_grip))
 
     m = solution.metrics
     t = np.asarray(traj.t)
@@ -277,7 +319,7 @@ def cmd_simulate(args) -> int:
     print(f"min grip {float(m.min_grip):.3f} N, peak grip {float(m.peak_grip):.3f} N, "
           f"slip {float(m.slip):.4g} N^2, crush {float(m.crush):.4g} N^2, RMS lag {lag_text}")
     note_step_size(args)
-    print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot else ""))
+    print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot is not None else ""))
     if not bool(m.finite):
         print(f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s "
               "(values after that are NaN); try a smaller --dt", file=sys.stderr)
@@ -407,6 +449,14 @@ def main(argv=None) -> int:
     except (BadInput, ValueError) as error:
         print(f"coopjax: error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        command = getattr(args, "command", None) if "args" in locals() else None
+        if command == "sweep" and os.path.isdir(args.out + ".parts"):
+            hint = f"finished chunks are kept in {args.out}.parts; add --resume to the same command to continue"
+        else:
+            hint = "nothing was written"
+        print(f"\ncoopjax: interrupted; {hint}", file=sys.stderr)
+        return 130
     except BrokenPipeError:  # `coopjax params | head`: the reader left, nothing is wrong
         sys.stderr.close()
         return 0

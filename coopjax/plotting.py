@@ -7,7 +7,9 @@ import numpy as np
 from coopjax.io import atomic_path
 
 
-def plot_run(trajectory, params, scenario: str, path: str, title: str | None = None) -> None:
+def plot_run(trajectory, params, scenario: str, path: str, title: str | None = None, peak: float | None = None) -> None:
+    """Grip forces, gamma and positions against time. Pass every step (a decimated trajectory can
+    hide an impact spike); `peak` marks the metrics' peak, which includes located impacts between steps."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -25,6 +27,10 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
     for i, r in enumerate("LR"):
         ax.plot(t, F[:, i], color=colours[r], label=f"gripper {r}")
     ax.axhline(F_lim[0], color="k", ls="--", lw=1, label=f"F_lim = {F_lim[0]:g} N")
+    if peak is not None and np.isfinite(peak):
+        k = np.unravel_index(np.nanargmax(F), F.shape)
+        ax.plot([t[k[0]]], [peak], "v", color="k", ms=7, label=f"peak {peak:.4g} N (impact located between steps)"
+                if peak > F[k] * (1 + 1e-9) else f"peak {peak:.4g} N")
     if scenario == "carry":
         F_max = float(np.asarray(params.F_max))
         ax.axhline(F_max, color="grey", ls=":", lw=1, label=f"F_max = {F_max:g} N")
@@ -49,56 +55,83 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
     ax.legend(loc="best", fontsize=8, ncol=2)
 
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1] if "." in path else "png")
+        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower() if "." in path else "png")
     plt.close(fig)
+
+
+def _label(name: str) -> str:
+    """A column name with its unit: parameters from PARAMETERS, metrics from the sweep's table."""
+    from coopjax.params import PARAMETERS, split_name
+    from coopjax.sweeps import COLUMN_UNITS
+
+    unit = COLUMN_UNITS.get(name)
+    if unit is None:
+        try:
+            unit = PARAMETERS[split_name(name)[0]].unit
+        except (KeyError, ValueError):
+            return name
+    return f"{name} [{unit.split(',')[0]}]"
 
 
 def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
-    """Scatter of y against x (diverged samples marked), and histograms of the grip metrics."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    finite = np.asarray(columns["finite"]) > 0.5
-    metrics = [m for m in ("min_grip", "peak_grip", "rms_lag") if m in columns]
-    fig = plt.figure(figsize=(11, 7), constrained_layout=True)
-    grid = fig.add_gridspec(2, len(metrics))
-    ax = fig.add_subplot(grid[0, :])
+    """Scatter of y against x for the trusted samples; the flagged ones (status not ok) in a strip of
+    their own below, never as if they had a value; histograms of the grip metrics."""
+    plt = _pyplot()
+    ok = np.asarray(columns["finite"]) > 0.5
     xs, ys = np.asarray(columns[x], float), np.asarray(columns[y], float)
+    shown = ok & np.isfinite(xs) & np.isfinite(ys)
+    metrics = [m for m in ("min_grip", "peak_grip", "rms_lag") if m in columns]
+    fig = plt.figure(figsize=(11, 7.5), constrained_layout=True)
+    grid = fig.add_gridspec(3, max(len(metrics), 1), height_ratios=[4, 0.6, 2.6])
+    ax = fig.add_subplot(grid[0, :])
     if color:
-        points = ax.scatter(xs[finite], ys[finite], c=np.asarray(columns[color], float)[finite], s=8, cmap="viridis")
-        fig.colorbar(points, ax=ax, label=color)
+        points = ax.scatter(xs[shown], ys[shown], c=np.asarray(columns[color], float)[shown], s=8, cmap="viridis")
+        fig.colorbar(points, ax=ax, label=_label(color))
     else:
-        ax.scatter(xs[finite], ys[finite], s=8)
-    if (~finite).any():
-        ax.scatter(xs[~finite], np.full((~finite).sum(), np.nanmin(ys) if finite.any() else 0.0), marker="x",
-                   color="red", label=f"diverged ({(~finite).sum()})")
-        ax.legend()
+        ax.scatter(xs[shown], ys[shown], s=8)
+    if not shown.any():
+        ax.text(0.5, 0.5, f"no trusted sample has a finite {y}", transform=ax.transAxes, ha="center")
     if y in ("min_grip", "peak_grip") and "F_lim" not in columns:
         ax.axhline(10.0, color="k", ls="--", lw=1, label="F_lim (Table 1)")
-    if x in ("M_b",) or (xs[finite] > 0).all() and xs.max() / max(xs.min(), 1e-300) > 50:
+        ax.legend(fontsize=8)
+    logx = x in ("M_b",) or (xs[np.isfinite(xs)] > 0).all() and np.nanmax(xs) / max(np.nanmin(xs), 1e-300) > 50
+    if logx:
         ax.set_xscale("log")
-    ax.set_xlabel(x)
-    ax.set_ylabel(y)
-    ax.set_title(f"{y} against {x}: {len(xs)} samples")
+    ax.set_ylabel(_label(y))
+    ax.set_title(f"{y} against {x}: {int(shown.sum())} trusted samples of {len(xs)}"
+                 + (f"; {int((~ok).sum())} flagged (strip below)" if (~ok).any() else ""))
+    strip = fig.add_subplot(grid[1, :], sharex=ax)
+    status = np.asarray(columns["status"]) if "status" in columns else np.where(ok, "ok", "diverged")
+    for k, s in enumerate(sorted(set(status[~ok].tolist()))):
+        mask = (status == s) & ~ok
+        strip.scatter(xs[mask], np.full(mask.sum(), k), marker="x", s=14, color=f"C{k + 1}", label=f"{s} ({mask.sum()})")
+    strip.set_yticks([])
+    strip.set_xlabel(_label(x))
+    if (~ok).any():
+        strip.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+        strip.set_ylabel("flagged", fontsize=8)
+    else:
+        strip.text(0.5, 0.5, "no flagged samples", transform=strip.transAxes, ha="center", va="center", fontsize=8)
+    plt.setp(ax.get_xticklabels(), visible=False)
     for j, m in enumerate(metrics):
-        h = fig.add_subplot(grid[1, j])
-        v = np.asarray(columns[m], float)[finite]
-        h.hist(v[np.isfinite(v)], bins=40)
-        h.set_xlabel(m)
-        h.set_ylabel("samples")
+        h = fig.add_subplot(grid[2, j])
+        v = np.asarray(columns[m], float)[ok]
+        v = v[np.isfinite(v)]
+        if v.size:
+            h.hist(v, bins=40)
+        else:
+            h.text(0.5, 0.5, "no finite values", transform=h.transAxes, ha="center")
+        h.set_xlabel(_label(m))
+        h.set_ylabel("trusted samples")
         h.tick_params(axis="x", labelrotation=30)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1])
-    plt.close(fig)
+    _save(fig, path)
 
 
 def _save(fig, path):
     import matplotlib.pyplot as plt
 
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1])
+        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower())
     plt.close(fig)
 
 

@@ -19,6 +19,7 @@ mode lives (at K_GP = 5 the carry ran finite at 4x the limit, with either integr
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -27,6 +28,9 @@ import numpy as np
 from coopjax import model
 from coopjax.params import Params, as_batched, _is_tracer
 from coopjax.scenarios import get_scenario
+
+
+MIN_PRACTICAL_DT = 1e-9  # s: a loop that needs a finer step than this has a parameter wrong
 
 
 def rk4_amplification(z):
@@ -57,22 +61,54 @@ _jacobians_jit = jax.jit(_jacobians, static_argnums=(1, 2))
 def fastest_modes(params: Params, config) -> np.ndarray:
     """Eigenvalues (1/s) of the linearised loop, shape (B, 2 operating points, 20)."""
     batched, _ = as_batched(params)
-    J = _jacobians_jit(batched, config.scenario, config.options)
-    return np.linalg.eigvals(np.asarray(J, np.float64))
+    with jax.enable_x64(True):  # float64 whatever the run uses: the limit must not depend on it
+        batched = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), batched)
+        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))
+    return np.linalg.eigvals(J)
+
+
+def _first_exit(theta: np.ndarray) -> np.ndarray:
+    """|z| at which the ray z = r e^{i theta} from 0 first leaves RK4's stability region (fine scan,
+    then bisection). 0 for rays into the right half-plane, where |R(z)| > 1 at once."""
+    r = np.linspace(0.0, 3.0, 301)[1:]
+    inside = rk4_amplification(r[None, :] * np.exp(1j * theta)[:, None]) <= 1 + 1e-12
+    first_out = np.where(inside.all(axis=1), r.size, np.argmin(inside, axis=1))
+    lo = np.where(first_out > 0, r[np.maximum(first_out - 1, 0)], 0.0)
+    hi = r[np.minimum(first_out, r.size - 1)]
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        ok = rk4_amplification(mid * np.exp(1j * theta)) <= 1 + 1e-12
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return np.where(first_out == 0, 0.0, lo)
+
+
+@functools.cache
+def _region():
+    """The stable radius along each direction of the left half-plane (and the imaginary axis)."""
+    theta = np.linspace(np.pi / 2, 3 * np.pi / 2, 4001)
+    return theta, _first_exit(theta)
 
 
 def max_stable_dt(eigenvalues: np.ndarray) -> np.ndarray:
-    """Largest dt with every mode inside RK4's stability region, per sample (bisection)."""
+    """Largest dt with every mode inside RK4's stability region, per sample: min over modes of the
+    region's radius along the mode's direction over |lambda| (0 if a mode grows, Re lambda > 0)."""
     lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
-    lam = lam[:, :, None]
-    lo = np.zeros((lam.shape[0], 1))
-    hi = np.full_like(lo, 10.0)
-    for _ in range(60):
-        mid = (lo + hi) / 2
-        ok = (rk4_amplification(lam * mid[:, None]) <= 1 + 1e-9).all(axis=1)
-        lo = np.where(ok, mid, lo)
-        hi = np.where(ok, hi, mid)
-    return lo[:, 0]
+    size = np.abs(lam)
+    theta = np.mod(np.angle(lam), 2 * np.pi)
+    radius = np.interp(theta, *_region(), left=0.0, right=0.0)
+    # Modes at 0 (the free-floating bases, conserved integrals) limit nothing.
+    tiny = size <= 1e-9 * np.maximum(size.max(axis=1, keepdims=True), 1e-300)
+    with np.errstate(divide="ignore"):
+        limit = np.where(tiny, np.inf, radius / np.where(tiny, 1.0, size))
+    return limit.min(axis=1)
+
+
+def growing_mode(eigenvalues: np.ndarray) -> np.ndarray:
+    """Per sample, the largest growth rate Re lambda (1/s) of the linearised loop, beyond round-off."""
+    lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
+    scale = np.abs(lam).max(axis=1)
+    growth = lam.real.max(axis=1)
+    return np.where(growth > 1e-9 * scale + 1e-9, growth, 0.0)
 
 
 def check_step(params: Params, config) -> None:
@@ -80,13 +116,27 @@ def check_step(params: Params, config) -> None:
     if any(_is_tracer(x) for x in jax.tree_util.tree_leaves(params)):
         return
     eig = fastest_modes(params, config)
+    growth = growing_mode(eig)
+    where = lambda i: f" (sample {i})" if params.batch_shape else ""
+    if (growth > 0).any():
+        worst = int(np.argmax(growth))
+        raise ValueError(
+            f"these parameters make the loop unstable{where(worst)}: its linearisation has a mode growing at "
+            f"{growth[worst]:.3g} 1/s, so no step size helps; check the signs and sizes of the gains "
+            "(e.g. K_GP, F_lim, masses)"
+        )
     limit = max_stable_dt(eig)
     worst = int(np.argmin(limit))
+    if limit[worst] < MIN_PRACTICAL_DT:
+        raise ValueError(
+            f"these parameters make the loop extremely stiff{where(worst)}: its fastest linearised mode is "
+            f"{np.abs(eig[worst]).max():.3g} 1/s, which a fixed step resolves only below {limit[worst]:.3g} s; "
+            "check the parameters (a tiny mass or a huge gain?)"
+        )
     if config.dt > limit[worst]:
         fastest = np.abs(eig[worst]).max()
-        where = f" (sample {worst})" if params.batch_shape else ""
         raise ValueError(
-            f"dt = {config.dt:g} s is too large for {config.method} on this loop{where}: its fastest linearised "
+            f"dt = {config.dt:g} s is too large for {config.method} on this loop{where(worst)}: its fastest linearised "
             f"mode is {fastest:.3g} 1/s, so its RK4 stages are stable only for dt <= {limit[worst]:.3g} s; "
             f"use dt <= {limit[worst] / 4:.2g} s for accuracy"
         )

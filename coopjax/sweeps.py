@@ -30,6 +30,15 @@ from coopjax.progress import Progress
 
 KINDS = ("uniform", "loguniform", "normal", "choice", "grid")
 METRICS = objectives.METRIC_NAMES
+# Why a sample is not trusted, most basic first. `finite` in the table is 1 only for "ok".
+STATUSES = ("ok", "diverged", "unstable_loop", "step_beyond_limit")
+COLUMNS_PER_SAMPLE = METRICS + ("dt_limit", "status")
+COLUMN_UNITS = {
+    "sample": "index", "min_grip": "N", "peak_grip": "N", "slip": "N^2", "crush": "N^2", "rms_lag": "m",
+    "impact": "N^2", "finite": "1 if trusted (status ok), else 0", "t_diverged": "s (NaN if it did not)",
+    "dt_limit": "s, the largest stable step of the linearised loop", "status": "|".join(STATUSES),
+}
+CHUNK_FORMAT = 2  # bumped when a chunk file's columns change, so --resume never mixes formats
 
 
 class Distribution(NamedTuple):
@@ -171,8 +180,36 @@ def make_spec(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="h
     n = n if n is not None else implied if implied is not None else rows
     if n is None or n < 1:
         raise ValueError("say how many samples: --n N (or use grid axes, or --from a table)")
+    if not dists and not table:
+        raise ValueError(f"nothing varies, so all {n} samples would be the same run: add --vary NAME=DIST "
+                         "(or --from TABLE), or use `coopjax simulate` for one run")
+    columns = len(dists) + len(table) + len(METRICS) + 3
+    if n * columns * 8 > memory_limit():
+        raise ValueError(f"--n {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
+                         f"more than half of this machine's memory ({memory_limit() / 2**30:.3g} GiB); "
+                         f"at most {memory_limit() // (columns * 8):,} samples per sweep here")
+    from coopjax.params import make_params
+
+    make_params(**fixed)  # every --set value checked now, before any file is written
     return SweepSpec(scenario, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed), switch,
                      float(dt), T, bool(x64), tuple((k, tuple(v)) for k, v in table.items()), integrator)
+
+
+def _significant(x: np.ndarray, digits: int) -> np.ndarray:
+    """x to `digits` significant digits. The step limit is an eigenvalue estimate: the two robots'
+    nearly repeated poles make it move by ~1e-7 with rounding (sqrt of machine epsilon), for example
+    between a one- and a two-process run, so more digits would be noise."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = 10.0 ** (np.floor(np.log10(np.abs(x))) - digits + 1)
+        return np.where(np.isfinite(x) & (x != 0), np.round(x / scale) * scale, x)
+
+
+def memory_limit() -> int:
+    """Half of this machine's physical memory, in bytes: the most one table may take."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30
 
 
 def block_size(n: int) -> int:
@@ -221,21 +258,27 @@ class _Runner:
     def __call__(self, values: dict[str, np.ndarray]) -> np.ndarray:
         import jax
 
+        from coopjax import stability
         from coopjax.params import make_params
 
-        m = len(next(iter(values.values()))) if values else 0
-        out = np.empty((m, len(METRICS)))
+        m = len(next(iter(values.values())))
+        out = np.empty((m, len(COLUMNS_PER_SAMPLE)))
         for start in range(0, m, self.slab):
             stop = min(start + self.slab, m)
             pad = self.slab - (stop - start)
             slab = {k: np.concatenate([v[start:stop], np.repeat(v[stop - 1:stop], pad)]) for k, v in values.items()}
-            if not slab:
-                slab = {"M_b": np.full(self.slab, PARAMETERS["M_b"].default)}
             params = make_params(**dict(self.spec.fixed), **slab)
-            params = jax.tree_util.tree_map(
-                lambda x: jax.device_put(x, self.per_robot if x.ndim == 2 else self.shared), params)
-            metrics = jax.device_get(self.run(params))
-            out[start:stop] = np.stack([np.asarray(x, np.float64) for x in metrics], axis=1)[: stop - start]
+            # The step check of `simulate`, per sample. Not overlapped with the run: compiling it while
+            # the devices compute made a small sweep 5x slower (thread contention, measured).
+            eig = stability.fastest_modes(params, self.config)
+            limit, growth = _significant(stability.max_stable_dt(eig), 6), stability.growing_mode(eig)
+            pending = self.run(jax.tree_util.tree_map(
+                lambda x: jax.device_put(x, self.per_robot if x.ndim == 2 else self.shared), params))
+            metrics = np.stack([np.asarray(x, np.float64) for x in jax.device_get(pending)], axis=1)
+            finite = metrics[:, METRICS.index("finite")] > 0.5
+            status = np.select([~finite, growth > 0, self.spec.dt > limit], [1, 2, 3], 0)
+            metrics[:, METRICS.index("finite")] = status == 0
+            out[start:stop] = np.column_stack([metrics, limit, status])[: stop - start]
         return out
 
 
@@ -265,14 +308,18 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
     results: dict[int, np.ndarray] = {}
     bar = Progress(spec.n, progress and pid == 0)
     for k in np.flatnonzero(done) if pid == 0 else ():
-        results[int(k)] = np.load(_part_path(parts, int(k)))
-        bar.update(len(results[int(k)]))
+        saved = _load_part(parts, int(k), min((k + 1) * chunk, spec.n) - k * chunk)
+        if saved is None:
+            done[k] = False
+            continue
+        results[int(k)] = saved
+        bar.update(len(saved))
 
     todo = [int(k) for k in np.flatnonzero(~done)]
     for r in range(0, len(todo), n_proc):
         round_chunks = todo[r:r + n_proc]
         mine = round_chunks[pid] if pid < len(round_chunks) else None
-        local = np.full((chunk, len(METRICS)), np.nan)
+        local = np.full((chunk, len(COLUMNS_PER_SAMPLE)), np.nan)
         if mine is not None:
             rows = slice(mine * chunk, min((mine + 1) * chunk, spec.n))
             local[: rows.stop - rows.start] = runner({k: v[rows] for k, v in values.items()})
@@ -295,9 +342,10 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
         return None
     metrics = np.concatenate([results[k] for k in range(n_chunks)])
     columns = {"sample": np.arange(spec.n), **values}
-    for j, name in enumerate(METRICS):
+    for j, name in enumerate(COLUMNS_PER_SAMPLE):
         columns[name] = metrics[:, j]
     columns["finite"] = columns["finite"] > 0.5
+    columns["status"] = np.asarray(STATUSES)[columns["status"].astype(int)]
     return columns
 
 
@@ -325,13 +373,28 @@ def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
     return values
 
 
+def _load_part(parts: str, k: int, rows: int):
+    """A saved chunk, or None (with a note) if it is unreadable or the wrong shape: it is recomputed."""
+    path = _part_path(parts, k)
+    try:
+        data = np.load(path)
+        if data.shape == (rows, len(COLUMNS_PER_SAMPLE)):
+            return data
+    except (OSError, ValueError, EOFError):
+        pass
+    import sys
+
+    print(f"coopjax: note: {path} is unreadable or incomplete; it is computed again", file=sys.stderr)
+    return None
+
+
 def _part_path(parts: str, k: int) -> str:
     return os.path.join(parts, f"chunk-{k:06d}.npy")
 
 
 def _prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunks: int) -> np.ndarray:
     manifest = os.path.join(parts, "manifest.json")
-    identity = json.dumps({"spec": json.loads(spec.to_json()), "chunk": chunk}, sort_keys=True)
+    identity = json.dumps({"spec": json.loads(spec.to_json()), "chunk": chunk, "format": CHUNK_FORMAT}, sort_keys=True)
     if os.path.exists(manifest):
         if not resume:
             raise ValueError(f"{parts} holds an unfinished sweep: add --resume to finish it, or delete it")
@@ -362,9 +425,13 @@ def sweep(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard"
     return pd.DataFrame(columns)
 
 
+def is_parquet(path: str) -> bool:
+    return path.lower().endswith(".parquet")
+
+
 def write_table(path: str, columns: dict[str, np.ndarray]) -> None:
-    """CSV (numpy) or Parquet (pandas + pyarrow), atomically."""
-    if path.endswith(".parquet"):
+    """CSV (full precision: Python's shortest round-trip repr) or Parquet (pandas + pyarrow), atomically."""
+    if is_parquet(path):
         import pandas as pd
 
         with atomic_path(path) as tmp:
@@ -372,16 +439,31 @@ def write_table(path: str, columns: dict[str, np.ndarray]) -> None:
         return
     from coopjax.io import write_csv
 
-    write_csv(path, {k: np.asarray(v, np.float64) for k, v in columns.items()})
+    write_csv(path, columns)
 
 
-def read_table(path: str) -> dict[str, np.ndarray]:
-    if path.endswith(".parquet"):
-        import pandas as pd
+def read_table(path: str, what: str = "table") -> dict[str, np.ndarray]:
+    """A sweep or parameter table; any problem with the file is one ValueError that names it."""
+    if os.path.isdir(path):
+        raise ValueError(f"{what} {path!r} is a folder, not a file")
+    if not os.path.exists(path):
+        raise ValueError(f"{what} {path!r}: no such file")
+    if os.path.getsize(path) == 0:
+        raise ValueError(f"{what} {path!r} is empty")
+    if is_parquet(path):
+        try:
+            import pandas as pd
 
-        frame = pd.read_parquet(path)
-        return {c: frame[c].to_numpy() for c in frame.columns}
-    data = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64)
-    if data.dtype.names is None:
-        raise ValueError(f"{path}: no header row found")
-    return {name: np.atleast_1d(data[name]) for name in data.dtype.names}
+            frame = pd.read_parquet(path)
+        except ImportError:
+            raise ValueError("reading Parquet needs pandas and pyarrow: pip install 'coopjax[sweep]'") from None
+        except Exception as error:  # pyarrow raises several types for a damaged file
+            raise ValueError(f"{what} {path!r} is not a readable Parquet file ({type(error).__name__})") from None
+        columns = {c: frame[c].to_numpy() for c in frame.columns}
+    else:
+        from coopjax.io import read_csv
+
+        columns = read_csv(path, what)
+    if not columns or not len(next(iter(columns.values()))):
+        raise ValueError(f"{what} {path!r} has no rows")
+    return columns

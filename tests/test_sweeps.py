@@ -31,9 +31,14 @@ def read(path):
 
 
 def assert_same_table(a, b):
+    """Bit-identical, except the step limit: an eigenvalue estimate that rounding moves by ~1e-7 and
+    that is stored to 6 digits (sweeps._significant), so it may differ in the last one."""
     assert list(a) == list(b)
     for k in a:
-        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        if k == "dt_limit":
+            np.testing.assert_allclose(a[k], b[k], rtol=2e-6)
+        else:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
 def test_rows_equal_single_simulate_runs():

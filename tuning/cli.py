@@ -166,6 +166,10 @@ def cmd_tune(args) -> int:
     check_output(args.out, "--out", ("json",))
     config, base, held_out = build(args)
     files = paths(args.out)
+    written = ["history", "traces", "checkpoint"] if not (args.compare or args.pareto) else (
+        ["race"] if args.compare else ["pareto"])
+    for key in written:  # every file this run will write, before any work
+        check_output(files[key], f"--out (its {key} file)")
     if os.path.exists(files["checkpoint"]) and not args.resume:
         raise BadInput(f"{files['checkpoint']} holds an interrupted run: add --resume to finish it, or delete it")
     if args.resume and not os.path.exists(files["checkpoint"]):

@@ -98,7 +98,8 @@ def make_optimizer(config: TuneConfig) -> optax.GradientTransformation:
     """Adam; the rate warms up over 10% of the run, then decays (cosine) to 10%."""
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.2 * config.learning_rate, peak_value=config.learning_rate,
-        warmup_steps=max(1, config.steps // 10), decay_steps=config.steps, end_value=0.1 * config.learning_rate,
+        warmup_steps=max(1, config.steps // 10), decay_steps=max(config.steps, max(1, config.steps // 10) + 1),
+        end_value=0.1 * config.learning_rate,
     )
     return optax.adam(schedule, b2=config.beta2)
 

@@ -18,7 +18,7 @@ def _pyplot():
 
 def _save(fig, path):
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1])
+        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower())
     _pyplot().close(fig)
 
 

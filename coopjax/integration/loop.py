@@ -65,6 +65,9 @@ def default_integrator(switch: str) -> str:
     return "filippov" if switch == "hard" else "rk4"
 
 
+MAX_STEPS = 2**31 - 1
+
+
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
     scenario: str = "carry"
@@ -110,6 +113,12 @@ class SimConfig:
             raise ValueError(f"checkpoint is {self.checkpoint!r}: choose True, False or 'nested'")
         if self.dt > self.horizon:
             raise ValueError(f"dt = {self.dt:g} s is longer than the horizon T = {self.horizon:g} s")
+        if self.horizon / self.dt > MAX_STEPS:
+            raise ValueError(f"T / dt = {self.horizon:g} s / {self.dt:g} s = {self.horizon / self.dt:.3g} steps; at most "
+                             f"{MAX_STEPS:,} (a 32-bit step counter): use a larger dt or a shorter T")
+        if self.every is not None and self.every > self.n_steps:
+            raise ValueError(f"every = {self.every} is more than the run's {self.n_steps} steps: nothing would be "
+                             f"recorded after t = 0 (use every <= {self.n_steps})")
         return self
 
 
@@ -285,6 +294,14 @@ def simulate(
 
         check_step(params, config)
     batched, added = as_batched(params)
+    if every is not None:
+        from coopjax.sweeps import memory_limit
+
+        # t, 20 states and 5 two-robot signals per record and sample.
+        size = (config.n_steps // every + 1) * (1 + model.N_STATE + 10) * int(np.prod(batched.batch_shape)) * 8
+        if size > memory_limit():
+            raise ValueError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
+                             f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often")
     solution = _integrate_jit(batched, config)
     if added:
         squeeze = lambda x: x[..., 0]
