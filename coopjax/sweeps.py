@@ -276,7 +276,9 @@ class _Runner:
                 lambda x: jax.device_put(x, self.per_robot if x.ndim == 2 else self.shared), params))
             metrics = np.stack([np.asarray(x, np.float64) for x in jax.device_get(pending)], axis=1)
             finite = metrics[:, METRICS.index("finite")] > 0.5
-            status = np.select([~finite, growth > 0, self.spec.dt > limit], [1, 2, 3], 0)
+            # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of
+            # unknown cause (`t_diverged` says when any of them blew up).
+            status = np.select([growth > 0, self.spec.dt > limit, ~finite], [2, 3, 1], 0)
             metrics[:, METRICS.index("finite")] = status == 0
             out[start:stop] = np.column_stack([metrics, limit, status])[: stop - start]
         return out
