@@ -91,8 +91,9 @@ def table1() -> dict:
     return {n: cj.params.PARAMETERS[n].default for n in PER_ROBOT + SHARED}
 
 
-def accuracy(numba_rk4) -> dict:
-    """Every baseline against coopjax in float64, before any timing counts."""
+def accuracy(numba_rk4, horizon: float = 4.0) -> dict:
+    """Every baseline against coopjax in float64, before any timing counts (over `horizon` s of the
+    carry scenario; --quick checks the first second only, which the smoke test needs to be cheap)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -106,7 +107,7 @@ def accuracy(numba_rk4) -> dict:
     params = cj.make_params(M_b=rng.uniform(0.5, 5.0, 4), K_GP=rng.uniform(0.3, 0.7, 4), k_F=2.0, k_c=2.0, eps_delta=1e-3)
     P = im.parameter_matrix(params)
     out = {}
-    for switch, T in (("smooth", 4.0), ("hard", 0.25)):
+    for switch, T in (("smooth", horizon), ("hard", 0.25)):
         n, every = int(round(T / 1e-3)), 10
         ours = np.asarray(cj.simulate(params, "carry", switch=switch, integrator="rk4", dt=1e-3, T=T, every=every,
                                       check_dt=False).trajectory.aux.F)
@@ -115,9 +116,10 @@ def accuracy(numba_rk4) -> dict:
         if numba_rk4 is not None:
             out[f"numba_{switch}"] = float(np.abs(numba_rk4(P, 1e-3, n, every, switch == "smooth") - ours).max() / scale)
     # LSODA solves the ODE itself, so it is compared with a converged coopjax run (dt = 1e-4).
-    ours = np.asarray(cj.simulate(cj.make_params(), "carry", switch="smooth", dt=1e-4, every=100).trajectory.aux.F)
+    ours = np.asarray(cj.simulate(cj.make_params(), "carry", switch="smooth", dt=1e-4, T=horizon,
+                                  every=100).trajectory.aux.F)
     t_eval = np.arange(ours.shape[0]) * 1e-2
-    F, _ = im.lsoda(table1(), 4.0, t_eval, smooth=True, rtol=LSODA_RTOL, atol=LSODA_RTOL * 1e-3)
+    F, _ = im.lsoda(table1(), horizon, t_eval, smooth=True, rtol=LSODA_RTOL, atol=LSODA_RTOL * 1e-3)
     out["lsoda_smooth"] = float(np.abs(F - ours).max() / np.abs(ours).max())
     out["ok"] = {k: v <= (LSODA_TOLERANCE if k.startswith("lsoda") else TOLERANCE) for k, v in out.items()}
     return out
@@ -271,7 +273,7 @@ def main(argv=None) -> int:
                   machine=machine(), config=dict(scenario="carry", dt=1e-3, T=args.T, switch="hard", quick=args.quick,
                                                  repeats=args.repeats))
     print("accuracy of the baselines against coopjax (float64) ...", flush=True)
-    result["accuracy"] = accuracy(numba_rk4)
+    result["accuracy"] = accuracy(numba_rk4, 1.0 if args.quick else 4.0)
     for name, ok in result["accuracy"]["ok"].items():
         print(f"  {name}: max relative force error {result['accuracy'][name]:.2e} {'ok' if ok else 'FAILED'}")
     if not all(result["accuracy"]["ok"].values()):

@@ -8,6 +8,15 @@ import os
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
 
+# One persistent compilation cache per test session, shared by the two workers and by the `coopjax`
+# subprocesses that several tests start (same programs, compiled once instead of three or four
+# times). The workers' parent is the session, so its pid names the folder; keys include the program,
+# the flags and the jax version, so a folder left over by an earlier run with the same pid is safe.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.path.join(tempfile.gettempdir(), f"coopjax-tests-{os.getppid()}")
+
 import jax  # noqa: E402
 import pytest
 
