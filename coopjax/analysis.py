@@ -77,7 +77,7 @@ class OperatingPoint:
 def _single(params: Params) -> Params:
     if params.batch_shape:
         raise ValueError(f"linearize takes one parameter set; this one has batch shape {params.batch_shape} "
-                         "(index it, e.g. params[i], or loop)")
+                         "(make one with scalar values, e.g. make_params(M_b=2.0), and loop over the batch)")
     return params
 
 

@@ -175,8 +175,10 @@ def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_
 
 def test_ctrl_c_is_one_line_that_says_how_to_resume(tmp_path):
     # The carry scenario's 4 s on 256 samples per chunk: about half a second per chunk, 32 chunks.
-    args = [sys.executable, "-m", "coopjax.cli", "sweep", "--devices", "1", "--vary", "M_b=uniform:1:2", "--n", "256",
-            "--chunk", "8", "--out", "s.csv"]
+    # pytest-xdist's workers ignore SIGINT and a child inherits that, so the child restores Python's handler.
+    args = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from coopjax.cli import main; sys.exit(main(sys.argv[1:]))",
+            "sweep", "--devices", "1", "--vary", "M_b=uniform:1:2", "--n", "256", "--chunk", "8", "--out", "s.csv"]
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     parts = tmp_path / "s.csv.parts"
     deadline = time.time() + 120
