@@ -10,12 +10,14 @@ if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
 
 # One persistent compilation cache per test session, shared by the two workers and by the `coopjax`
 # subprocesses that several tests start (same programs, compiled once instead of three or four
-# times). The workers' parent is the session, so its pid names the folder; keys include the program,
-# the flags and the jax version, so a folder left over by an earlier run with the same pid is safe.
+# times). It is named after the session's process (a worker's parent), and removed when it ends.
+SESSION = os.getppid() if os.environ.get("PYTEST_XDIST_WORKER") else os.getpid()
+CACHE = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     import tempfile
 
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.path.join(tempfile.gettempdir(), f"coopjax-tests-{os.getppid()}")
+    CACHE = os.path.join(tempfile.gettempdir(), f"coopjax-tests-{SESSION}")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE
 
 import jax  # noqa: E402
 import pytest
@@ -28,3 +30,10 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 def fresh_dir(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     return tmp_path
+
+
+def pytest_sessionfinish(session):
+    if CACHE and not os.environ.get("PYTEST_XDIST_WORKER"):
+        import shutil
+
+        shutil.rmtree(CACHE, ignore_errors=True)
