@@ -7,5 +7,6 @@ from coopjax.params import PARAMETERS, Params, make_params
 from coopjax.scenarios import SCENARIOS
 from coopjax.sweeps import sweep
 from coopjax.analysis import linearize
+from coopjax.devices import use_all_cores
 
 __version__ = "0.1.0"

@@ -294,6 +294,9 @@ def simulate(
 
         check_step(params, config)
     batched, added = as_batched(params)
+    from coopjax.devices import shard, unpad
+
+    batched, n_samples = shard(batched)
     if every is not None:
         from coopjax.sweeps import memory_limit
 
@@ -303,6 +306,11 @@ def simulate(
             raise ValueError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
                              f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often")
     solution = _integrate_jit(batched, config)
+    if int(np.prod(batched.batch_shape)) != n_samples:
+        t = None if solution.trajectory is None else solution.trajectory.t
+        solution = unpad(solution, n_samples)
+        if t is not None:  # the record times have no batch axis
+            solution = solution._replace(trajectory=solution.trajectory._replace(t=t))
     if added:
         squeeze = lambda x: x[..., 0]
         trajectory = solution.trajectory

@@ -1,0 +1,69 @@
+"""All of this machine's cores for one batch: JAX's CPU backend as one device per core, and the
+batch sharded over them.
+
+JAX fixes its CPU device count when its backend starts, so it cannot be changed on import without
+changing the user's JAX for them. `use_all_cores()` is the one call that does it, first thing;
+`simulate` then shards any batch over the devices, and warns once when a large batch runs on one
+core of several.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import jax
+import numpy as np
+
+LARGE_BATCH = 1024  # samples: below this, one core is not worth a warning
+_warned = False
+
+
+def use_all_cores(n: int | None = None) -> int:
+    """One XLA CPU device per core (or `n`); call before any JAX computation. Returns the count."""
+    n = n or os.cpu_count() or 1
+    if n < 1:
+        raise ValueError(f"n = {n}: at least one device")
+    try:
+        jax.config.update("jax_num_cpu_devices", int(n))
+    except RuntimeError:
+        if jax.device_count() != n:
+            raise RuntimeError(
+                f"JAX has already started with {jax.device_count()} device(s): call coopjax.use_all_cores() "
+                "before anything creates a JAX array (first thing after the imports)"
+            ) from None
+    return jax.device_count()
+
+
+def _warn_one_core(batch: int) -> None:
+    global _warned
+    cores = os.cpu_count() or 1
+    if not _warned and batch >= LARGE_BATCH and jax.device_count() == 1 and cores > 1:
+        _warned = True
+        warnings.warn(
+            f"a batch of {batch} runs on 1 of this machine's {cores} cores: call coopjax.use_all_cores() "
+            "first thing in your program to shard batches over all of them", stacklevel=3)
+
+
+def shard(batched):
+    """Pad the batch (last axis of every leaf) to a multiple of the device count by repeating its last
+    sample, and place it sharded over the devices. Returns (params, original batch size)."""
+    size = int(np.prod(batched.batch_shape))
+    n = jax.device_count()
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched)):
+        return batched, size  # under grad/jit/vmap the caller's transformation decides the layout
+    _warn_one_core(size)
+    if n == 1 or len(batched.batch_shape) != 1:
+        return batched, size
+    pad = -size % n
+    if pad:
+        batched = jax.tree_util.tree_map(
+            lambda x: jax.numpy.concatenate([x, jax.numpy.repeat(x[..., -1:], pad, axis=-1)], axis=-1), batched)
+    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("batch",))
+    spec = lambda x: jax.sharding.PartitionSpec(*([None] * (x.ndim - 1) + ["batch"]))
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, spec(x))), batched), size
+
+
+def unpad(tree, size: int):
+    """Drop the padding `shard` added (last axis of every array leaf)."""
+    return jax.tree_util.tree_map(lambda x: x[..., :size] if getattr(x, "ndim", 0) else x, tree)
