@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from benchmarks.implementations import PER_ROBOT, SHARED, TWO_PI
+from benchmarks.implementations import PER_ROBOT, TWO_PI
 
 EPS = 1e-9  # as coopjax.integration.filippov.EPS
 N_METRICS = 8  # min_grip, peak_grip, slip, crush, rms_lag, impact, finite, t_diverged
@@ -26,7 +26,7 @@ def make_numba_filippov():
 
     n_per = len(PER_ROBOT)
     base = 2 * n_per
-    njit = numba.njit(fastmath=False, cache=False)
+    njit = lambda f=None, **kw: numba.njit(f, fastmath=False, **kw) if f is not None else (lambda g: numba.njit(g, fastmath=False, **kw))
 
     @njit
     def cos_sin_small(x):
@@ -35,7 +35,7 @@ def make_numba_filippov():
         s = x * (1.0 - x2 / 6 * (1 - x2 / 20 * (1 - x2 / 42 * (1 - x2 / 72 * (1 - x2 / 110)))))
         return c, s
 
-    @njit
+    @njit(inline="always")
     def bump(t, cos, sin, t0, A):
         u = t - t0
         inside = (u >= 0.0) and (u < 1.0)
@@ -44,16 +44,16 @@ def make_numba_filippov():
         x = 0.0 if u < 0.0 else (A * (u - sin / TWO_PI) if inside else A)
         return v, a, x
 
-    @njit
+    @njit(inline="always")
     def command(t, cos, sin, s, A_g, A_c):
         v1, a1, x1 = bump(t, cos, sin, 0.0, s * A_g)
         v2, a2, x2 = bump(t, cos, sin, 1.0, A_c)
         v3, a3, x3 = bump(t, cos, sin, 2.0, -2.0 * s * A_g)
         return v1 + v2 + v3, a1 + a2 + a3, x1 + x2 + x3
 
-    @njit
-    def robot_rates(P, i, b, s, y, F, w, F_gamma, F_memory, v_cmd, a_cmd, x_ref, out):
-        """Robot i's nine rates at sample b for a numeric switch value w (0 or 1), into out[0:9]."""
+    @njit(inline="always")
+    def robot_rates(P, i, b, s, y, F, w, F_gamma, F_memory, v_cmd, a_cmd, x_ref):
+        """Robot i's nine rates at sample b for a numeric switch value w (0 or 1)."""
         M_v, M_r = P[0 + i, b], P[2 + i, b]
         M_c, R_c, K_c, M_f = P[8 + i, b], P[10 + i, b], P[12 + i, b], P[14 + i, b]
         R_f, K_f, mu_H, beta_H = P[16 + i, b], P[18 + i, b], P[20 + i, b], P[22 + i, b]
@@ -73,23 +73,15 @@ def make_numba_filippov():
         h = R_f * v_f + K_f * x_f
         f_ext = -s * F
         e_c = (D - M_c * f_ext / M_r + M_c * g * h / M_f) / (1.0 + M_c * mu_H / M_r + M_c * g / M_f)
-        out[0] = v_r
-        out[1] = (mu_H * e_c + f_ext) / M_r
-        out[2] = v_v
-        out[3] = -mu_H * e_c / M_v
-        out[4] = err
-        out[5] = v_f
-        out[6] = (e_c - h) / M_f
-        out[7] = dZ
-        out[8] = dY
+        return (v_r, (mu_H * e_c + f_ext) / M_r, v_v, -mu_H * e_c / M_v, err, v_f, (e_c - h) / M_f, dZ, dY)
 
-    @njit
+    @njit(inline="always")
     def in_contact(y, on, off_, i, b):
         s = 1.0 if i == 0 else -1.0
         delta = s * (y[i, b] - y[18, b])
         return on[i, b] > 0.5 or (not (off_[i, b] > 0.5) and delta > 0.0)
 
-    @njit
+    @njit(inline="always")
     def contact_force(P, y, on, off_, i, b):
         s = 1.0 if i == 0 else -1.0
         delta = s * (y[i, b] - y[18, b])
@@ -105,8 +97,6 @@ def make_numba_filippov():
         overrides as 0/1 floats. F_start receives the contact force (2, m).
         """
         m = y.shape[1]
-        r0 = np.empty(9)
-        r1 = np.empty(9)
         for b in range(m):
             F_L = contact_force(P, y, on, off_, 0, b)
             F_R = contact_force(P, y, on, off_, 1, b)
@@ -121,8 +111,8 @@ def make_numba_filippov():
                 v_cmd, a_cmd, x_ref = command(t[b], cos[b], sin[b], s, P[base + 1, b], P[base + 2, b])
                 F_lim = P[24 + i, b]
                 clamped = max(F[i], F_lim)
-                robot_rates(P, i, b, s, y, F[i], 0.0, F[i], F[i], v_cmd, a_cmd, x_ref, r0)
-                robot_rates(P, i, b, s, y, F[i], 1.0, clamped, clamped, v_cmd, a_cmd, x_ref, r1)
+                r0 = robot_rates(P, i, b, s, y, F[i], 0.0, F[i], F[i], v_cmd, a_cmd, x_ref)
+                r1 = robot_rates(P, i, b, s, y, F[i], 1.0, clamped, clamped, v_cmd, a_cmd, x_ref)
                 delta_dot = s * (y[2 + i, b] - y[19, b])
                 sd0 = P[4 + i, b] * delta_dot + P[6 + i, b] * s * (r0[1] - a_o)
                 sd1 = P[4 + i, b] * delta_dot + P[6 + i, b] * s * (r1[1] - a_o)
@@ -136,9 +126,15 @@ def make_numba_filippov():
                 theta_a = min(max(sn / (-sd1 * h[b]), 0.0), 1.0) if above else 1.0
                 lam = (1.0 - theta_b) * lam_star if sn < 0.0 else theta_a + (1.0 - theta_a) * lam_star
                 lam = lam if in_contact(y, on, off_, i, b) else 0.0
-                for q in range(9):
-                    switched = q == 1 or q == 3 or q == 4 or q == 6 or q == 7 or q == 8
-                    k[2 * q + i, b] = r0[q] + lam * (r1[q] - r0[q]) if switched else r0[q]
+                k[i, b] = r0[0]
+                k[2 + i, b] = r0[1] + lam * (r1[1] - r0[1])
+                k[4 + i, b] = r0[2]
+                k[6 + i, b] = r0[3] + lam * (r1[3] - r0[3])
+                k[8 + i, b] = r0[4] + lam * (r1[4] - r0[4])
+                k[10 + i, b] = r0[5]
+                k[12 + i, b] = r0[6] + lam * (r1[6] - r0[6])
+                k[14 + i, b] = r0[7] + lam * (r1[7] - r0[7])
+                k[16 + i, b] = r0[8] + lam * (r1[8] - r0[8])
 
     @njit
     def sigma_at(P, y, on, off_, out):
@@ -199,7 +195,6 @@ def make_numba_filippov():
             y = np.zeros((20, m))
             y_new = np.empty((20, m))
             ws = np.empty((9, 20, m))
-            r0 = np.empty(9)
             F = np.empty((2, m))
             on1 = np.zeros((2, m))
             off1 = np.zeros((2, m))
@@ -246,7 +241,7 @@ def make_numba_filippov():
                         s = 1.0 if i == 0 else -1.0
                         Fk = F_L if i == 0 else F_R
                         v_cmd, a_cmd, x_ref = command(t, cos_t, sin_t, s, Pc[base + 1, b], Pc[base + 2, b])
-                        robot_rates(Pc, i, b, s, y, Fk, 0.0, Fk, Fk, v_cmd, a_cmd, x_ref, r0)
+                        r0 = robot_rates(Pc, i, b, s, y, Fk, 0.0, Fk, Fk, v_cmd, a_cmd, x_ref)
                         F_lim = Pc[24 + i, b]
                         in_grip = k >= grip[0] and k <= grip[1]
                         step_slip += max(F_lim - Fk, 0.0) ** 2 if in_grip else 0.0
