@@ -28,4 +28,9 @@ def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     assert result["flops"]["flops_per_sample_step"] > 0 and result["flops_filippov"]["flops_per_sample_step"] > 0
     assert {"coopjax_over_lsoda_per_set", "targets", "filippov_over_rk4_cost"} <= set(result["summary"])
     assert all(v > 0 for v in result["summary"]["filippov_over_rk4_cost"].values())
+    # Issue 12's fields (numba's sliding-mode peer is left out of --quick: its compile takes 30 s).
+    assert {"rk4_steps_per_s", "filippov_steps_per_s", "coopjax_over_numba", "converged_trajectories_per_s",
+            "compile_s", "fraction_of_peak"} <= set(result["summary"])
+    assert result["summary"]["rk4_steps_per_s"]["float64_1_device"] > 0
+    assert result["summary"]["filippov_steps_per_s"]["float64_1_device"] > 0
     assert plot.stat().st_size > 10_000
