@@ -92,3 +92,36 @@ def test_bilateral_contact_pulls_where_unilateral_lets_go():
     unilateral, bilateral = run("unilateral"), run("bilateral")
     assert unilateral.min() >= 0.0
     assert bilateral.min() < -1.0
+
+
+def test_use_all_cores_shards_a_batch_and_changes_no_bit(tmp_path):
+    """`coopjax.use_all_cores(2)` in a fresh process: 5 samples (padded to 6 over 2 devices) give the
+    metrics and final states of this one-device process exactly."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, coopjax as cj; cj.use_all_cores(2); import jax; "
+            "jax.config.update('jax_enable_x64', True); "
+            "s = cj.simulate(cj.make_params(M_b=np.geomspace(0.5, 5, 5), K_GP=np.linspace(0.3, 0.9, 5)), 'paper', T=0.5); "
+            "assert jax.device_count() == 2 and s.metrics.peak_grip.shape == (5,); "
+            "np.save(sys.argv[1], np.concatenate([np.stack([np.asarray(x, np.float64) for x in s.metrics]), s.y_final]))")
+    out = tmp_path / "two.npy"
+    run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    s = cj.simulate(cj.make_params(M_b=np.geomspace(0.5, 5, 5), K_GP=np.linspace(0.3, 0.9, 5)), "paper", T=0.5)
+    mine = np.concatenate([np.stack([np.asarray(x, np.float64) for x in s.metrics]), np.asarray(s.y_final)])
+    np.testing.assert_array_equal(np.load(out), mine)
+
+
+def test_a_large_batch_on_one_core_of_several_says_so(monkeypatch):
+    import warnings
+
+    from coopjax import devices
+
+    monkeypatch.setattr(devices, "_warned", False)
+    monkeypatch.setattr(devices.os, "cpu_count", lambda: 4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        devices.shard(cj.make_params(M_b=np.ones(devices.LARGE_BATCH)))
+        devices.shard(cj.make_params(M_b=np.ones(devices.LARGE_BATCH)))  # once only
+    assert len(caught) == 1 and "use_all_cores" in str(caught[0].message)
