@@ -216,11 +216,6 @@ def linearize(params: Params, point="rest", *, inputs=("e_env_L",), outputs=("v_
     return control.ss(A, A @ B1 + B0, C, C @ B1 + D, inputs=list(inputs), outputs=list(outputs), states=states)
 
 
-def jacobian(params: Params, point="rest", **kwargs) -> np.ndarray:
-    """The 20 x 20 Jacobian of the field at `point` (the A matrix of `linearize`)."""
-    return np.asarray(linearize(params, point, **kwargs).A)
-
-
 def prune(sys):
     """Drop the states that cannot reach an output or be reached from an input, judged from the exact
     zeros of the Jacobians (jacfwd gives exact zeros where there is no coupling). The transfer

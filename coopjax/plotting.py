@@ -7,14 +7,27 @@ import numpy as np
 from coopjax.io import atomic_path
 
 
-def plot_run(trajectory, params, scenario: str, path: str, title: str | None = None, peak: float | None = None) -> None:
-    """Grip forces, gamma and positions against time. Pass every step (a decimated trajectory can
-    hide an impact spike); `peak` marks the metrics' peak, which includes located impacts between steps."""
+def _pyplot():
+    """pyplot on the non-interactive backend (figures are only written to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save(fig, path):
+    """Write the figure atomically in the format its extension names, then free it."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower())
+    _pyplot().close(fig)
+
+
+def plot_run(trajectory, params, scenario: str, path: str, title: str | None = None, peak: float | None = None) -> None:
+    """Grip forces, gamma and positions against time. Pass every step (a decimated trajectory can
+    hide an impact spike); `peak` marks the metrics' peak, which includes located impacts between steps."""
+    plt = _pyplot()
     t = np.asarray(trajectory.t)
     F = np.asarray(trajectory.aux.F)
     gamma = np.asarray(trajectory.aux.gamma)
@@ -54,9 +67,7 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
     ax.set_xlabel("time t [s]")
     ax.legend(loc="best", fontsize=8, ncol=2)
 
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower() if "." in path else "png")
-    plt.close(fig)
+    _save(fig, path)
 
 
 def _label(name: str) -> str:
@@ -125,23 +136,6 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
         h.set_ylabel("trusted samples")
         h.tick_params(axis="x", labelrotation=30)
     _save(fig, path)
-
-
-def _save(fig, path):
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower())
-    plt.close(fig)
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_bode(report: dict, path: str) -> None:

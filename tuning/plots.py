@@ -4,22 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coopjax.io import atomic_path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path):
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.rsplit(".", 1)[-1].lower())
-    _pyplot().close(fig)
+from coopjax.plotting import _pyplot, _save  # one home for the figure helpers
 
 
 def plot_history(history: dict, path: str, config) -> None:
