@@ -32,7 +32,7 @@ import numpy as np
 
 from coopjax import model
 from coopjax.params import Params, ROBOTS
-from coopjax.scenarios import Clock, get_scenario
+from coopjax.scenarios import Clock, get_scenario, stacked
 
 INPUTS = tuple(f"{q}_{r}" for q in ("e_env", "v_ref", "gamma") for r in ROBOTS)
 OUTPUTS = model.STATE_NAMES + tuple(f"{q}_{r}" for q in ("F", "gamma", "x_ref") for r in ROBOTS)
@@ -141,7 +141,7 @@ def _field(p, y_op, t, w, contact, y, u, u_dot, scenario, inputs, outputs):
 
     _, _, F = model.geometry(p, st, s)
     F = F * contact[:, None]
-    v_cmd, a_cmd, x_ref = get_scenario(scenario).command(p, Clock.at(t))
+    v_cmd, a_cmd, x_ref = stacked(get_scenario(scenario).command(p, Clock.at(t)))
     v_cmd = v_cmd + per_robot(u, "v_ref")
     a_cmd = a_cmd + per_robot(u_dot, "v_ref")
     if y.shape[0] > n:
@@ -159,7 +159,7 @@ def _field(p, y_op, t, w, contact, y, u, u_dot, scenario, inputs, outputs):
         zero_if_cut = lambda g: jnp.where(cut, 0.0, g)
         p_run = dataclasses.replace(p, K_ini=K_ini, K_GP=zero_if_cut(p.K_GP), K_GI=zero_if_cut(p.K_GI))
     rates, _ = model.robot_field(p_run, st, s, F, w, (v_cmd, a_cmd, x_ref), model.Options(), f_env=per_robot(u, "e_env"))
-    dy = model.pack({**rates, **model.body_field(p, st, F)})[:, 0]
+    dy = model.pack({**rates, **model.body_field(p, st, F[0], F[1])})[:, 0]
     if y.shape[0] > n:
         dy = jnp.concatenate([dy, per_robot(u, "v_ref")[:, 0]])
     gamma = law(st, F)

@@ -3,6 +3,12 @@
 State layout (20 rows, batch on the last axis): rows 0-17 are nine per-robot quantities, each a
 (2, B) block with robot L first, in the order of `ROBOT_STATES`; rows 18 and 19 are the body's
 x_o and v_o. Everything is a pure function of (params, state, t).
+
+The robot-level functions (`geometry`, `controller`, `robot_field`) are elementwise: they take
+either both robots as (2, B) blocks (with `sign`, as the linear analysis does) or one robot's (B,)
+rows (with `robot_params` and a scalar sign, as `vector_field` and the integrators do). The rows
+are the fast layout on CPU: (2, B) blocks cost a reshape and a stack per field evaluation, which
+split XLA's fusions and made the step 3.5x slower (benchmarks/README.md, "Layout").
 """
 
 from __future__ import annotations
@@ -26,6 +32,25 @@ STATE_NAMES = tuple(f"{q}_{r}" for q in ROBOT_STATES for r in "LR") + BODY_STATE
 def sign(batch_ndim: int, dtype):
     """s_i: +1 for robot L (pushes in +x), -1 for robot R, shaped to broadcast over (2, B)."""
     return jnp.array([1.0, -1.0], dtype).reshape((2,) + (1,) * batch_ndim)
+
+
+SIGNS = (1.0, -1.0)  # s_i for robot L and robot R, in the robot-row layout
+
+
+def robot_params(p: Params, i: int) -> Params:
+    """Robot i's view of the parameters: its per-robot leaves (B,) and the shared ones."""
+    return dataclasses.replace(p, **{n: getattr(p, n)[i] for n in PER_ROBOT})
+
+
+def split(y):
+    """(20, B) -> one dict of (B,) rows per robot, each with the body's x_o and v_o."""
+    body = {"x_o": y[-2], "v_o": y[-1]}
+    return tuple({**{q: y[2 * j + i] for j, q in enumerate(ROBOT_STATES)}, **body} for i in range(2))
+
+
+def join(rates, body) -> jax.Array:
+    """Per-robot rate dicts and the body's rates -> (20, B), in `STATE_NAMES` order."""
+    return jnp.stack([rates[i][q] for q in ROBOT_STATES for i in range(2)] + [body["x_o"], body["v_o"]])
 
 
 def unpack(y):
@@ -100,28 +125,49 @@ def controller(p: Params, v_ref, a_ref, v_meas, q_c, x_f, v_f, gamma, f_ext, bas
     return err, e_c, a_r, a_f
 
 
+def _like(body_row, robot):
+    """A body row (B,) against a robot quantity: a (2, B) block or a (B,) row."""
+    return body_row[None] if robot.ndim == body_row.ndim + 1 else body_row
+
+
 def geometry(p: Params, st, s):
     """Gripper compression delta_i, its rate, and the Kelvin-Voigt force K_g delta + R_g delta_dot.
 
     The Kelvin-Voigt force is linear in the state; the contact force is it, clipped, while in contact.
     """
-    delta = p.delta0 + s * (st["x_r"] - st["x_o"][None])
-    delta_dot = s * (st["v_r"] - st["v_o"][None])
+    x_o, v_o = _like(st["x_o"], st["x_r"]), _like(st["v_o"], st["x_r"])
+    delta = p.delta0 + s * (st["x_r"] - x_o)
+    delta_dot = s * (st["v_r"] - v_o)
     return delta, delta_dot, p.K_g * delta + p.R_g * delta_dot
 
 
 def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: Options):
-    """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B); t a time or a Clock."""
-    p = params
-    st = unpack(y)
-    s = sign(y.ndim - 1, y.dtype)
-    delta, delta_dot, _ = geometry(p, st, s)
-    F = surrogates.contact_force(p, delta, delta_dot, options)
-    command = scenario.command(p, t if isinstance(t, Clock) else Clock.at(t))
+    """dy/dt of the full model and the auxiliary signals at (t, y). y is (20, B); t a time or a Clock.
+
+    Each robot runs on its own (B,) rows; the signals in `Aux` are stacked to (2, B) for users.
+    """
+    clock = t if isinstance(t, Clock) else Clock.at(t)
+    commands = scenario.command(params, clock)
+    robots = split(y)
+    ps = [robot_params(params, i) for i in range(2)]
+    F = []
+    for i in range(2):
+        delta, delta_dot, _ = geometry(ps[i], robots[i], SIGNS[i])
+        F.append(surrogates.contact_force(ps[i], delta, delta_dot, options))
+    rates, auxes = [], []
+    for i in range(2):
+        r, a = _one_robot_field(ps[i], robots[i], SIGNS[i], F[i], commands[i], options)
+        rates.append(r)
+        auxes.append(a)
+    aux = Aux(*(jnp.stack(pair) for pair in zip(*auxes)))
+    return join(rates, body_field(params, robots[0], F[0], F[1])), aux
+
+
+def _one_robot_field(p, st, s, F, command, options):
+    """One robot's rates and signals under the configured switch."""
     w = surrogates.switch(p, F, options)
     if options.switch != "blend":
-        rates, aux = robot_field(p, st, s, F, w, command, options)
-        return pack({**rates, **body_field(p, st, F)}), aux
+        return robot_field(p, st, s, F, w, command, options)
     # Blend: the convex combination of the switch-off and switch-on fields, weighted by the smooth
     # switch. The field is nonlinear in w (gamma sits in the controller's denominator, and a_ref has a
     # (1 - w)^2 term), so substituting a fractional w ("smooth") slides along F = F_lim differently
@@ -133,7 +179,7 @@ def vector_field(params: Params, y: jax.Array, t, scenario: Scenario, options: O
     on, aux_on = robot_field(p, st, s, F, 1.0, command, options, F_gamma=jnp.maximum(F, p.F_lim))
     rates = {q: off[q] + w * (on[q] - off[q]) for q in ROBOT_STATES}
     aux = jax.tree_util.tree_map(lambda a, b: a + w * (b - a), aux_off, aux_on)
-    return pack({**rates, **body_field(p, st, F)}), aux._replace(F=F, w=w)
+    return rates, aux._replace(F=F, w=w)
 
 
 def _times(w, x):
@@ -183,9 +229,9 @@ def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None,
     return rates, Aux(F=F, w=w_array, gamma=jnp.broadcast_to(gamma, F.shape), x_ref=x_ref, v_ref=v_ref)
 
 
-def body_field(p: Params, st, F):
+def body_field(p: Params, st, F_L, F_R):
     """The body's rates: it feels only the two gripper forces (no switch acts on it)."""
-    return dict(x_o=st["v_o"], v_o=(F[0] - F[1]) / p.M_b)
+    return dict(x_o=st["v_o"], v_o=(F_L - F_R) / p.M_b)
 
 
 def momentum(params: Params, y: jax.Array) -> jax.Array:

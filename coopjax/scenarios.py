@@ -76,34 +76,37 @@ def bump(clock: Clock, t0, A):
     )
 
 
-def _stack(left, right):
-    """(v_cmd, a_cmd, x_ref), each of shape (2, B): robot L then robot R."""
-    return tuple(jnp.stack([l, r]) for l, r in zip(left, right))
-
-
 def paper_command(params: Params, clock: Clock):
     """Fig. 6 of the paper: equal and opposite squeezing velocities, never stopping."""
-    return _stack(profile(clock, 0.0, params.A_1), profile(clock, 0.0, params.A_2))
+    unit = profile(clock, 0.0, 1.0)  # V is linear in A: one profile for both robots
+    return tuple(tuple(A * x for x in unit) for A in (params.A_1, params.A_2))
 
 
 def carry_command(params: Params, clock: Clock):
-    """Pick (grip), carry 0.5 m in +x, release, settle. s_L = +1, s_R = -1."""
-    out = []
-    for s in (1.0, -1.0):
-        parts = (
-            bump(clock, 0.0, s * params.A_g),  # grip: each tip's reference goes A_g into the body
-            bump(clock, 1.0, params.A_c),  # carry: both move A_c in +x
-            bump(clock, 2.0, -2.0 * s * params.A_g),  # release: back away A_g beyond first touch
-        )
-        out.append(tuple(sum(p[k] for p in parts) for k in range(3)))
-    return _stack(*out)
+    """Pick (grip), carry 0.5 m in +x, release, settle. s_L = +1, s_R = -1.
+
+    Each phase is a unit bump (a function of t alone, so one value per step, not per sample) times
+    its amplitude: grip, each tip's reference goes A_g into the body; carry, both move A_c in +x;
+    release, back away A_g beyond first touch.
+    """
+    grip, carry, release = (bump(clock, t0, 1.0) for t0 in (0.0, 1.0, 2.0))
+    return tuple(
+        tuple(s * params.A_g * g + params.A_c * c - 2.0 * s * params.A_g * r for g, c, r in zip(grip, carry, release))
+        for s in (1.0, -1.0)
+    )
+
+
+def stacked(command):
+    """A command as (v_cmd, a_cmd, x_ref), each (2, B) with robot L first."""
+    return tuple(jnp.stack([left, right]) for left, right in zip(*command))
 
 
 @dataclasses.dataclass(frozen=True)
 class Scenario:
     """A command profile and the windows its metrics are taken over (MODEL.md section 7).
 
-    `command(params, clock)` gives (v_cmd, a_cmd, x_ref), each (2, B). `grip_window` bounds
+    `command(params, clock)` gives one (v_cmd, a_cmd, x_ref) per robot, L first, each (B,) (`stacked`
+    makes them (2, B)). `grip_window` bounds
     min_grip, slip and crush; with `after_reach`, a robot's samples count only from the moment its
     force first reaches F_lim (the paper's claim is about what happens after the grip is
     established). `lag_window` bounds the RMS of x_ref - x_r.

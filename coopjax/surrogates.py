@@ -19,7 +19,7 @@ def switch(p, F, options):
     """swi(F, F_lim): 1 while force control is on (F >= F_lim), else 0."""
     if options.switch == "hard":
         return (F >= p.F_lim).astype(F.dtype)
-    smooth = jax.nn.sigmoid((F - p.F_lim) / p.k_F[None])
+    smooth = jax.nn.sigmoid((F - p.F_lim) / p.k_F)
     if options.switch in ("smooth", "blend"):
         return smooth
     return _straight_through((F >= p.F_lim).astype(F.dtype), smooth)
@@ -34,7 +34,7 @@ def contact_force(p, delta, delta_dot, options):
     hard = jnp.where(delta > 0.0, jnp.maximum(kelvin, 0.0), 0.0)
     if options.switch == "hard":
         return hard
-    k_c, eps_delta = p.k_c[None], p.eps_delta[None]  # shared widths over the robot axis
+    k_c, eps_delta = p.k_c, p.eps_delta  # shared widths: (B,) broadcasts over a (2, B) block too
     smooth = k_c * jax.nn.softplus(kelvin / k_c) * jax.nn.sigmoid(delta / eps_delta)
     if options.switch in ("smooth", "blend"):
         return smooth

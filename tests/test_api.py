@@ -94,9 +94,11 @@ def test_bilateral_contact_pulls_where_unilateral_lets_go():
     assert bilateral.min() < -1.0
 
 
-def test_use_all_cores_shards_a_batch_and_changes_no_bit(tmp_path):
+def test_use_all_cores_shards_a_batch_and_changes_only_round_off(tmp_path):
     """`coopjax.use_all_cores(2)` in a fresh process: 5 samples (padded to 6 over 2 devices) give the
-    metrics and final states of this one-device process exactly."""
+    metrics and final states of this one-device process, to round-off: a sample's SIMD lane (a full
+    vector or the loop's tail) depends on the per-device batch, and XLA may contract a*b+c into one
+    FMA in one and not the other (measured: 4e-12 absolute on a 3e3 N^2 slip)."""
     import subprocess
     import sys
 
@@ -110,7 +112,7 @@ def test_use_all_cores_shards_a_batch_and_changes_no_bit(tmp_path):
     assert run.returncode == 0, run.stderr
     s = cj.simulate(cj.make_params(M_b=np.geomspace(0.5, 5, 5), K_GP=np.linspace(0.3, 0.9, 5)), "paper", T=0.5)
     mine = np.concatenate([np.stack([np.asarray(x, np.float64) for x in s.metrics]), np.asarray(s.y_final)])
-    np.testing.assert_array_equal(np.load(out), mine)
+    np.testing.assert_allclose(np.load(out), mine, rtol=1e-12, atol=1e-12)
 
 
 def test_a_large_batch_on_one_core_of_several_says_so(monkeypatch):
