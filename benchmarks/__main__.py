@@ -62,18 +62,10 @@ def machine() -> dict:
 
 
 def run_child(devices: int, args, extras: bool) -> dict:
-    from coopjax.cli import FAST_XLA_FLAG
-
     cmd = [sys.executable, "-m", "benchmarks.coopjax_child", "--devices", str(devices), "--Bs", args.Bs,
            "--repeats", str(args.repeats), "--T", str(args.T)] + (["--extras"] if extras else []) + (
         ["--quick"] if args.quick else [])
-    env = dict(os.environ)
-    # The coopjax command's own XLA setting (docs in coopjax/cli.py), unless the user set XLA_FLAGS.
-    if "xla_cpu_use_fusion_emitters" not in env.get("XLA_FLAGS", ""):
-        import jax
-
-        if jax.__version__.startswith("0.10."):
-            env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + FAST_XLA_FLAG).strip()
+    env = dict(os.environ)  # XLA's defaults, unless the user set XLA_FLAGS
     print(f"coopjax on {devices} device(s) ...", flush=True)
     proc = subprocess.run(cmd, cwd=os.path.dirname(HERE), env=env, stdout=subprocess.PIPE, text=True)
     if proc.returncode != 0:

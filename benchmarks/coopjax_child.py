@@ -49,6 +49,7 @@ def throughput(Bs, dtypes, devices, repeats, T):
     import jax
     import numpy as np
 
+    from coopjax.devices import batch_spec, per_device
     from coopjax.integration import SimConfig, integrate
     from coopjax.model import Options
 
@@ -60,10 +61,11 @@ def throughput(Bs, dtypes, devices, repeats, T):
             continue
         params = make_batch(B, dtype)
         used = devices
-        if used > 1:
-            spec = lambda x: jax.sharding.PartitionSpec(*([None] * (x.ndim - 1) + ["batch"]))
-            params = jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, spec(x))), params)
-        fn = jax.jit(lambda p: integrate(p, config).metrics)
+        fn = lambda p: integrate(p, config).metrics
+        if used > 1:  # as `simulate` runs a batch over several devices: each its own slice
+            params = jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), params)
+            fn = per_device(fn, jax.devices()[:devices])
+        fn = jax.jit(fn)
         compiled, compile_s = compile_timed(fn, params)
         jax.block_until_ready(compiled(params))  # warm-up
         run_s = timed(compiled, params, repeats=repeats)

@@ -413,23 +413,7 @@ def cmd_analyze(args) -> int:
     return 0
 
 
-# XLA CPU's newer fusion emitters make this model's RK4 step 1.4x (float32) to 1.8x (float64) slower
-# than the classic ones (benchmarks/sweep_throughput.py). An unknown flag aborts XLA, so it is added
-# only for the jax series it was measured on, only by the CLI, and never over a user's own choice.
-FAST_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
-FAST_XLA_TESTED = ("0.10.",)
-
-
-def use_fast_xla_flags() -> None:
-    import jax
-
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags and jax.__version__.startswith(FAST_XLA_TESTED):
-        os.environ["XLA_FLAGS"] = (flags + " " + FAST_XLA_FLAG).strip()
-
-
 def main(argv=None) -> int:
-    use_fast_xla_flags()  # read when JAX's backend starts, so before any computation
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

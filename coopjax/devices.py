@@ -60,8 +60,32 @@ def shard(batched):
         batched = jax.tree_util.tree_map(
             lambda x: jax.numpy.concatenate([x, jax.numpy.repeat(x[..., -1:], pad, axis=-1)], axis=-1), batched)
     mesh = jax.sharding.Mesh(np.array(jax.devices()), ("batch",))
-    spec = lambda x: jax.sharding.PartitionSpec(*([None] * (x.ndim - 1) + ["batch"]))
-    return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, spec(x))), batched), size
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), batched), size
+
+
+def batch_spec(x) -> jax.sharding.PartitionSpec:
+    """Split an array's last (batch) axis over the mesh's "batch" axis; a scalar is replicated."""
+    ndim = getattr(x, "ndim", 0)
+    return jax.sharding.PartitionSpec(*([None] * (ndim - 1) + ["batch"])) if ndim else jax.sharding.PartitionSpec()
+
+
+def per_device(fn, devices, out_specs=None):
+    """`fn` (params with a batch last axis -> arrays with it) run by each device on its own slice.
+
+    With `shard_map`, nothing crosses devices inside the time loop: a batch-wide test such as the
+    sliding-mode step's "does any sample hit in this step" is taken per device. Under GSPMD it was
+    an all-reduce per substep, and two devices ran float64 filippov 1.2x faster than one instead of
+    1.9x (measured). `out_specs` defaults to the batch last axis on every output leaf.
+    """
+    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+
+    def run(params):
+        specs = out_specs if out_specs is not None else jax.tree_util.tree_map(
+            batch_spec, jax.eval_shape(fn, params))
+        in_specs = jax.tree_util.tree_map(batch_spec, params)
+        return jax.shard_map(fn, mesh=mesh, in_specs=(in_specs,), out_specs=specs, check_vma=False)(params)
+
+    return run
 
 
 def unpad(tree, size: int):

@@ -222,14 +222,17 @@ def block_size(n: int) -> int:
 
 
 @functools.lru_cache(maxsize=16)
-def _metrics_fn(config):
-    """One jitted metrics function per configuration, so repeated sweeps (tuning's selection and
-    judging call them many times) compile once, not once per call."""
+def _metrics_fn(config, devices=None):
+    """One jitted metrics function per configuration (and device tuple), so repeated sweeps (tuning's
+    selection and judging call them many times) compile once, not once per call. Over several
+    devices each runs its own slice (`devices.per_device`)."""
     import jax
 
+    from coopjax.devices import per_device
     from coopjax.integration import integrate
 
-    return jax.jit(lambda p: integrate(p, config).metrics)
+    fn = lambda p: integrate(p, config).metrics
+    return jax.jit(fn if devices is None or len(devices) == 1 else per_device(fn, list(devices)))
 
 
 class _Runner:
@@ -249,7 +252,7 @@ class _Runner:
         mesh = jax.sharding.Mesh(np.array(self.devices), ("batch",))
         self.per_robot = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, "batch"))
         self.shared = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-        self.run = _metrics_fn(self.config)
+        self.run = _metrics_fn(self.config, tuple(self.devices))
 
     @property
     def slab(self) -> int:

@@ -2,12 +2,6 @@
 
 import os
 
-# The classic XLA CPU emitters, as the `coopjax` command uses (coopjax.cli.FAST_XLA_FLAG): they
-# compile the differentiated sliding-mode step about 1.5x faster (test_gradients.py: 155 s -> 100 s,
-# measured). Set before JAX starts; a user's own XLA_FLAGS choice is kept.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
-
 # One persistent compilation cache per test session, shared by the two workers and by the `coopjax`
 # subprocesses that several tests start (same programs, compiled once instead of three or four
 # times). It is named after the session's process (a worker's parent), and removed when it ends.

@@ -59,15 +59,3 @@ def test_real_process_exit_code_and_no_traceback(fresh_dir):
     assert run.returncode == 2
     assert run.stderr.strip() == "coopjax: error: M_b is -1 kg: it must be positive (body mass)"
     assert os.listdir(fresh_dir) == []
-
-
-def test_fast_xla_flag_respects_the_users_choice(monkeypatch):
-    import jax
-
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    cli.use_fast_xla_flags()
-    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
-    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
-    cli.use_fast_xla_flags()
-    expected = "--xla_dump_to=/tmp/x" + (" " + cli.FAST_XLA_FLAG if jax.__version__.startswith(cli.FAST_XLA_TESTED) else "")
-    assert os.environ["XLA_FLAGS"] == expected

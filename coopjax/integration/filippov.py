@@ -171,33 +171,36 @@ def _axpy(rows: Rows, c, k: Rows) -> Rows:
     return jax.tree_util.tree_map(lambda a, b: a + c * b, rows, k)
 
 
-# RK4's tableau for stages 2-4: the stage point y + A h k_prev at t + A h, and the weight B of its rates.
-RK4_A = (0.5, 0.5, 1.0)
-RK4_B = (2.0, 2.0, 1.0)  # over 6
+# RK4's tableau: stage j is evaluated at y + A_j h k_{j-1}, t + A_j h, and weighted B_j / 6.
+RK4_A = (0.0, 0.5, 0.5, 1.0)
+RK4_B = (1.0, 2.0, 2.0, 1.0)
 
 
 def substep(params, ps, rows: Rows, clock: Clock, h, contact, scenario, options):
     """RK4 over a (sub)step of per-sample length h (B,), each stage with its Filippov weights.
 
-    Stages 2-4 run as a `lax.scan` over the tableau: one stage body for XLA to compile instead of a
-    chain of them. Unrolled, the differentiated step took 28 s to compile (measured), growing faster
-    than the chain's length, and the forward step ran no faster. Returns the new state and both
-    robots' contact forces at the first stage.
+    The four stages run as a `lax.scan` over the tableau (the first at A = 0, from k = 0): one
+    stage body for XLA to compile instead of a chain of them. Unrolled, the differentiated step took
+    28 s to compile (measured), growing faster than the chain's length, and the forward step ran no
+    faster. Returns the new state and both robots' contact forces at the first stage.
     """
-    f1, body = fields(params, ps, rows, clock, contact, scenario, options)
-    sigma_n = tuple(f.sigma for f in f1)  # every stage's theta uses sigma at the substep start (step 2)
-    k1 = _rates(f1, body, sigma_n, h)
+    # Every stage's theta uses sigma at the substep start (SLIDING.md step 2): the contact alone.
+    sigma_n = tuple(
+        jnp.where(c[0], c[2], 0.0) - ps[i].F_lim
+        for i, c in enumerate(_contact(ps[i], rows.robot(i), model.SIGNS[i], options,
+                                       *(() if contact is None else (contact.on[i], contact.off[i]))) for i in range(2)))
 
     def stage(carry, tableau):
         k_prev, total = carry
         a, b = tableau
         fs, body = fields(params, ps, _axpy(rows, a * h, k_prev), clock.advance(a * h), contact, scenario, options)
         k = _rates(fs, body, sigma_n, h)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), None
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (fs[0].F, fs[1].F)
 
     tableau = (jnp.asarray(RK4_A, h.dtype), jnp.asarray(RK4_B, h.dtype))
-    (_, total), _ = jax.lax.scan(stage, (k1, k1), tableau)
-    return _axpy(rows, h / 6, total), (f1[0].F, f1[1].F)
+    zero = jax.tree_util.tree_map(jnp.zeros_like, rows)
+    (_, total), F = jax.lax.scan(stage, (zero, zero), tableau)
+    return _axpy(rows, h / 6, total), (F[0][0], F[1][0])
 
 
 def impact_fraction(p, st, s, a_r_off, a_o, dt):

@@ -14,6 +14,7 @@ hashable `SimConfig`; changing one recompiles, changing a parameter value does n
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple
 
@@ -244,6 +245,21 @@ def integrate(params: Params, config: SimConfig) -> Solution:
 _integrate_jit = jax.jit(integrate, static_argnums=1)
 
 
+@functools.lru_cache(maxsize=32)
+def _integrate_per_device(config: SimConfig, n_devices: int):
+    """`integrate` with each of the first n devices running its own slice of the batch (shard_map)."""
+    from coopjax.devices import batch_spec, per_device
+
+    def specs(solution):
+        specs = jax.tree_util.tree_map(batch_spec, solution)
+        if solution.trajectory is not None:  # the record times have no batch axis
+            specs = specs._replace(trajectory=specs.trajectory._replace(t=jax.sharding.PartitionSpec()))
+        return specs
+
+    fn = lambda p: integrate(p, config)
+    return jax.jit(lambda p: per_device(fn, jax.devices()[:n_devices], specs(jax.eval_shape(fn, p)))(p))
+
+
 def simulate(
     params: Params,
     scenario: str = "carry",
@@ -305,7 +321,12 @@ def simulate(
         if size > memory_limit():
             raise ValueError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
                              f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often")
-    solution = _integrate_jit(batched, config)
+    n_devices, size = jax.device_count(), int(np.prod(batched.batch_shape))
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched))
+    if concrete and n_devices > 1 and len(batched.batch_shape) == 1 and size % n_devices == 0:
+        solution = _integrate_per_device(config, n_devices)(batched)  # `shard` padded it to fit
+    else:
+        solution = _integrate_jit(batched, config)
     if int(np.prod(batched.batch_shape)) != n_samples:
         t = None if solution.trajectory is None else solution.trajectory.t
         solution = unpad(solution, n_samples)
