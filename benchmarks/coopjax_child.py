@@ -139,10 +139,11 @@ def compile_vs_horizon(horizons):
 
     params = make_batch(64, "float32")
     rows = []
-    for T in horizons:
-        config = SimConfig("carry", Options(switch="hard"), dt=1e-3, T=T)
-        _, compile_s = compile_timed(jax.jit(lambda p: integrate(p, config).metrics), params)
-        rows.append(dict(T=T, n_steps=config.n_steps, compile_s=compile_s))
+    for integrator in IMPL:
+        for T in horizons:
+            config = SimConfig("carry", Options(switch="hard"), integrator=integrator, dt=1e-3, T=T)
+            _, compile_s = compile_timed(jax.jit(lambda p: integrate(p, config).metrics), params)
+            rows.append(dict(integrator=integrator, T=T, n_steps=config.n_steps, compile_s=compile_s))
     return rows
 
 

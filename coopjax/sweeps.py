@@ -241,7 +241,7 @@ class _Runner:
     def __init__(self, spec: SweepSpec, devices):
         import jax
 
-        from coopjax.integration import SimConfig, integrate
+        from coopjax.integration import SimConfig
         from coopjax.model import Options
 
         self.spec = spec

@@ -31,6 +31,9 @@ def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     # Issue 12's fields (numba's sliding-mode peer is left out of --quick: its compile takes 30 s).
     assert {"rk4_steps_per_s", "filippov_steps_per_s", "coopjax_over_numba", "converged_trajectories_per_s",
             "compile_s", "fraction_of_peak"} <= set(result["summary"])
+    assert set(result["summary"]["targets_issue12"]) == {
+        "filippov float64 all cores >= 2 x numba filippov", "filippov_over_rk4_cost <= 2.5 (float64, all cores)",
+        "rk4 float32 all cores >= 25 M steps/s", "compile < 5 s", "compile flat in the horizon (10x the steps, < 1.5x the time)"}
     assert result["summary"]["rk4_steps_per_s"]["float64_1_device"] > 0
     assert result["summary"]["filippov_steps_per_s"]["float64_1_device"] > 0
     assert plot.stat().st_size > 10_000

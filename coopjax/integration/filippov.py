@@ -58,8 +58,9 @@ class Rows(NamedTuple):
 
     @classmethod
     def of(cls, y) -> "Rows":
+        L, R = model.split(y)
         strip = lambda st: {q: st[q] for q in model.ROBOT_STATES}
-        return cls(tuple(strip(st) for st in model.split(y)), {"x_o": y[-2], "v_o": y[-1]})
+        return cls((strip(L), strip(R)), {"x_o": L["x_o"], "v_o": L["v_o"]})
 
     def robot(self, i):
         """Robot i's rows with the body's, as `model.geometry` and `model.robot_field` take them."""
@@ -101,15 +102,16 @@ def _contact(p, st, s, options, on=None, off=None):
     return in_contact, jnp.where(in_contact, jnp.maximum(kelvin, 0.0), 0.0), kelvin, delta, delta_dot
 
 
-def fields(params, ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, options):
+def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, options):
     """Both robots' w = 0 and w = 1 fields at one point (a pair of `Fields`) and the body's rates.
+    `ps` is `model.robots(params)`; ps[0] also carries the shared parameters.
 
     The contact forces come first: the body's acceleration needs both, and neither depends on w.
     """
-    commands = scenario.command(params, clock)
+    commands = scenario.command(ps[0], clock)
     touch = [_contact(ps[i], rows.robot(i), model.SIGNS[i], options,
                       *(() if contact is None else (contact.on[i], contact.off[i]))) for i in range(2)]
-    body = model.body_field(params, rows.body, touch[0][1], touch[1][1])
+    body = model.body_field(ps[0], rows.body, touch[0][1], touch[1][1])
     out = []
     for i in range(2):
         p, st, s = ps[i], rows.robot(i), model.SIGNS[i]
@@ -176,7 +178,7 @@ RK4_A = (0.0, 0.5, 0.5, 1.0)
 RK4_B = (1.0, 2.0, 2.0, 1.0)
 
 
-def substep(params, ps, rows: Rows, clock: Clock, h, contact, scenario, options):
+def substep(ps, rows: Rows, clock: Clock, h, contact, scenario, options):
     """RK4 over a (sub)step of per-sample length h (B,), each stage with its Filippov weights.
 
     The four stages run as a `lax.scan` over the tableau (the first at A = 0, from k = 0): one
@@ -193,7 +195,7 @@ def substep(params, ps, rows: Rows, clock: Clock, h, contact, scenario, options)
     def stage(carry, tableau):
         k_prev, total = carry
         a, b = tableau
-        fs, body = fields(params, ps, _axpy(rows, a * h, k_prev), clock.advance(a * h), contact, scenario, options)
+        fs, body = fields(ps, _axpy(rows, a * h, k_prev), clock.advance(a * h), contact, scenario, options)
         k = _rates(fs, body, sigma_n, h)
         return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (fs[0].F, fs[1].F)
 
@@ -225,19 +227,19 @@ def impact_fraction(p, st, s, a_r_off, a_o, dt):
 def step(params, y, t, dt, scenario, options):
     """y(t) -> (y(t + dt), F and x_ref at t, force just after a located impact): the loop's step protocol."""
     rows = Rows.of(y)
-    ps = [model.robot_params(params, i) for i in range(2)]
+    ps = model.robots(params)
     clock = Clock.at(t)
     # At the step start the metrics need only F and x_ref, and the impact prediction only the
     # switch-off field: the switch-on field and the weight are left to the stages.
-    commands = scenario.command(params, clock)
+    commands = scenario.command(ps[0], clock)
     touch = [_contact(ps[i], rows.robot(i), model.SIGNS[i], options) for i in range(2)]
     F = jnp.stack([touch[0][1], touch[1][1]])
     x_ref = jnp.stack([c[2] for c in commands])
     if options.contact == "bilateral":  # no impacts: one RK4 step
         h = jnp.full(y.shape[1:], dt, y.dtype)
-        new, _ = substep(params, ps, rows, clock, h, None, scenario, options)
+        new, _ = substep(ps, rows, clock, h, None, scenario, options)
         return new.array(), F, x_ref, None
-    a_o = model.body_field(params, rows.body, touch[0][1], touch[1][1])["v_o"]
+    a_o = model.body_field(ps[0], rows.body, touch[0][1], touch[1][1])["v_o"]
     fraction, hits = [], []
     for i in range(2):
         off, _ = model.robot_field(ps[i], rows.robot(i), model.SIGNS[i], touch[i][1], 0.0, commands[i], options)
@@ -257,7 +259,7 @@ def step(params, y, t, dt, scenario, options):
     # as the step-start force, which the peak metric sees anyway.
     def run(rows, xs):
         offset, h, forced_on, forced_off = xs
-        new, start_F = substep(params, ps, rows, clock.advance(offset), h, Contact(forced_on, forced_off), scenario, options)
+        new, start_F = substep(ps, rows, clock.advance(offset), h, Contact(forced_on, forced_off), scenario, options)
         return new, jnp.stack(start_F)
 
     def part(rows, xs):
@@ -273,8 +275,7 @@ def step(params, y, t, dt, scenario, options):
 def observe(params, y, t, dt, scenario, options) -> model.Aux:
     """The signals recorded at (t, y): contact force, Filippov weight, time-averaged gamma."""
     rows = Rows.of(y)
-    ps = [model.robot_params(params, i) for i in range(2)]
-    fs, _ = fields(params, ps, rows, Clock.at(t), None, scenario, options)
+    fs, _ = fields(model.robots(params), rows, Clock.at(t), None, scenario, options)
     h = jnp.full(y.shape[1:], dt, y.dtype)
     auxes = [aux(f, weight(f, f.sigma, h)) for f in fs]
     return model.Aux(*(jnp.stack(pair) for pair in zip(*auxes)))

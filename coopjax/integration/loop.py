@@ -159,14 +159,15 @@ def integrate(params: Params, config: SimConfig) -> Solution:
     batch = params.batch_shape
 
     method = INTEGRATORS[config.method]
+    views = model.robots(params)  # split once, outside the time loop (see `model.robots`)
 
     def observe(t, y):
-        return method.observe(params, y, t, dt, scenario, options)
+        return method.observe(views, y, t, dt, scenario, options)
 
     def advance(carry, k):
         y, acc, diverged, t_div = carry
         t = k.astype(dtype) * dt
-        y_new, F, x_ref, F_impact = method.step(params, y, t, dt, scenario, options)
+        y_new, F, x_ref, F_impact = method.step(views, y, t, dt, scenario, options)
         x_r = model.unpack(y)["x_r"]
         acc_new = objectives.accumulate(acc, F, x_ref, x_r, params, k, win, F_impact)
         acc = jnp.where(diverged[None], acc, acc_new)
