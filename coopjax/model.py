@@ -8,7 +8,7 @@ The robot-level functions (`geometry`, `controller`, `robot_field`) are elementw
 either both robots as (2, B) blocks (with `sign`, as the linear analysis does) or one robot's (B,)
 rows (with `robot_params` and a scalar sign, as `vector_field` and the integrators do). The rows
 are the fast layout on CPU: (2, B) blocks cost a reshape and a stack per field evaluation, which
-split XLA's fusions and made the step 3.5x slower (benchmarks/README.md, "Layout").
+split XLA's fusions and made the step 3.5x slower (README, "Measured speed").
 """
 
 from __future__ import annotations
