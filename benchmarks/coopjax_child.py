@@ -47,13 +47,12 @@ def throughput(Bs, dtypes, devices, repeats, T):
     """Forward parameter-set steps per second, carry, hard switch, dt = 1e-3, sharded over devices,
     for plain RK4 and for the sliding-mode step."""
     import jax
-    import numpy as np
 
-    from coopjax.devices import batch_spec, per_device
+    from coopjax.devices import slabs
     from coopjax.integration import SimConfig, integrate
+    from coopjax.integration.loop import _integrate_per_device, run_batch
     from coopjax.model import Options
 
-    mesh = jax.sharding.Mesh(np.array(jax.devices()[:devices]), ("batch",))
     rows = []
     for integrator, dtype, B in ((i, d, B) for i in IMPL for d in dtypes for B in Bs):
         config = SimConfig("carry", Options(switch="hard"), integrator=integrator, dt=1e-3, T=T)
@@ -61,12 +60,11 @@ def throughput(Bs, dtypes, devices, repeats, T):
             continue
         params = make_batch(B, dtype)
         used = devices
-        fn = lambda p: integrate(p, config).metrics
-        if used > 1:  # as `simulate` runs a batch over several devices: each its own slice
-            params = jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), params)
-            fn = per_device(fn, jax.devices()[:devices])
-        fn = jax.jit(fn)
-        compiled, compile_s = compile_timed(fn, params)
+        if used > 1:  # as `simulate` runs it: each device its own slice, in blocks of BLOCK samples
+            _, compile_s = compile_timed(_integrate_per_device(config, used), slabs(params)[0][0])
+            compiled = lambda p: run_batch(p, config)[0].metrics
+        else:
+            compiled, compile_s = compile_timed(jax.jit(lambda p: integrate(p, config).metrics), params)
         jax.block_until_ready(compiled(params))  # warm-up
         run_s = timed(compiled, params, repeats=repeats)
         rows.append(dict(impl=IMPL[integrator], integrator=integrator, dtype=dtype, devices=used, B=B,

@@ -246,6 +246,34 @@ def integrate(params: Params, config: SimConfig) -> Solution:
 _integrate_jit = jax.jit(integrate, static_argnums=1)
 
 
+def run_batch(batched: Params, config: SimConfig) -> tuple[Solution, int]:
+    """`integrate` on a batch as `simulate` runs it; returns (solution, samples before padding).
+
+    Over several devices, a concrete 1-D batch is cut into slabs (`devices.slabs`) dispatched one
+    after another without waiting, each device running its own slice of a slab; otherwise one jitted
+    call on the batch as `devices.shard` placed it.
+    """
+    from coopjax.devices import shard, slabs
+
+    n_devices = jax.device_count()
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched))
+    if not (concrete and n_devices > 1 and len(batched.batch_shape) == 1):
+        batched, size = shard(batched)
+        return _integrate_jit(batched, config), size
+    parts, size = slabs(batched)
+    run = _integrate_per_device(config, n_devices)
+    parts = [run(slab) for slab in parts]
+    if len(parts) == 1:
+        return parts[0], size
+    cat = lambda *xs: jnp.concatenate(xs, axis=-1)
+    trajectory = None
+    if parts[0].trajectory is not None:  # the record times have no batch axis
+        trajectory = Trajectory(parts[0].trajectory.t, cat(*(q.trajectory.y for q in parts)),
+                                jax.tree_util.tree_map(cat, *(q.trajectory.aux for q in parts)))
+    metrics = jax.tree_util.tree_map(cat, *(q.metrics for q in parts))
+    return Solution(metrics, cat(*(q.y_final for q in parts)), trajectory), size
+
+
 @functools.lru_cache(maxsize=32)
 def _integrate_per_device(config: SimConfig, n_devices: int):
     """`integrate` with each of the first n devices running its own slice of the batch (shard_map)."""
@@ -311,9 +339,8 @@ def simulate(
 
         check_step(params, config)
     batched, added = as_batched(params)
-    from coopjax.devices import shard, unpad
+    from coopjax.devices import unpad
 
-    batched, n_samples = shard(batched)
     if every is not None:
         from coopjax.sweeps import memory_limit
 
@@ -322,13 +349,8 @@ def simulate(
         if size > memory_limit():
             raise ValueError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
                              f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often")
-    n_devices, size = jax.device_count(), int(np.prod(batched.batch_shape))
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched))
-    if concrete and n_devices > 1 and len(batched.batch_shape) == 1 and size % n_devices == 0:
-        solution = _integrate_per_device(config, n_devices)(batched)  # `shard` padded it to fit
-    else:
-        solution = _integrate_jit(batched, config)
-    if int(np.prod(batched.batch_shape)) != n_samples:
+    solution, n_samples = run_batch(batched, config)
+    if int(np.prod(solution.metrics.finite.shape)) != n_samples:
         t = None if solution.trajectory is None else solution.trajectory.t
         solution = unpad(solution, n_samples)
         if t is not None:  # the record times have no batch axis
