@@ -293,8 +293,8 @@ def summarise(result) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="small sizes, one repeat, no memory or compile-time "
-                        "study: under 2 minutes")
+    parser.add_argument("--quick", action="store_true", help="small sizes, one repeat, no gradient, memory or "
+                        "compile-time study, no numba sliding-mode peer: under 2 minutes")
     parser.add_argument("--Bs", default=None, help="batch sizes (default 1,64,1024,4096; quick 1,64,1024)")
     parser.add_argument("--repeats", type=int, default=None, help="runs per figure, median reported (default 5; quick 1)")
     parser.add_argument("--T", type=float, default=4.0, help="horizon in s (default 4, the carry scenario)")
@@ -381,9 +381,10 @@ def report(result):
     lsoda = result["lsoda"]
     print(f"{'LSODA (smooth), one set per call':<34} {1:>6} {lsoda['steps_per_s_equivalent'] / 1e6:>10.4f}"
           f"   ({lsoda['seconds_per_set']:.3f} s per set)")
-    g = result["gradient"]
-    print(f"\nfour-gain gradient / forward (B = {g['B']}, T = {g['T']:g} s): forward mode {g['jacfwd_over_forward']:.2f}x, "
-          f"reverse mode {g['grad_over_forward']:.2f}x")
+    g = result.get("gradient")
+    if g:
+        print(f"\nfour-gain gradient / forward (B = {g['B']}, T = {g['T']:g} s): forward mode {g['jacfwd_over_forward']:.2f}x, "
+              f"reverse mode {g['grad_over_forward']:.2f}x")
     for r in result.get("memory", []):
         run = f"{r['run_s']:.2f} s" if r["run_s"] else "not run"
         print(f"reverse mode, checkpoint={r['checkpoint']:<6} T={r['T']:>5g} s: {r['temp_bytes'] / 1e6:9.1f} MB, {run}")

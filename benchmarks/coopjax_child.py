@@ -185,9 +185,9 @@ def main():
                   throughput=throughput(Bs, args.dtypes.split(","), args.devices, args.repeats, args.T))
     if args.extras:
         quick, T = args.quick, args.T
-        print("  gradient cost ...", flush=True)
-        result["gradient"] = gradient_cost(16 if quick else 64, 3 if quick else args.repeats, T)
-        if not quick:  # shape studies: several extra compilations each, left to the full run
+        if not quick:  # gradient and shape studies: several extra compilations each, left to the full run
+            print("  gradient cost ...", flush=True)
+            result["gradient"] = gradient_cost(64, args.repeats, T)
             print("  reverse-mode memory ...", flush=True)
             result["memory"] = memory(8, (T, 10 * T), 3)
             result["compile_vs_horizon"] = compile_vs_horizon((T / 10, T, 10 * T))

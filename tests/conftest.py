@@ -20,6 +20,9 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 
     CACHE = os.path.join(tempfile.gettempdir(), f"coopjax-tests-{SESSION}")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE
+    # Cache programs that compile in a fifth of a second or more (JAX's default is 1 s): most of the
+    # CLI subprocesses' programs are below a second, and each subprocess compiled them again.
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 import jax  # noqa: E402
 import pytest

@@ -74,6 +74,7 @@ def test_bad_flags_give_one_line_and_exit_2(fresh_dir, capsys, args, message):
     assert list(fresh_dir.iterdir()) == []
 
 
+@pytest.mark.slow  # 28 s, for the suite's 5-minute budget; CMA-ES and random search are tested only here
 def test_the_race_gives_each_tuner_the_gradient_tuners_clock_and_validates_their_choices():
     from tuning import race
 
