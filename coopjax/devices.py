@@ -52,21 +52,18 @@ def _warn_one_core(batch: int) -> None:
 
 
 def shard(batched):
-    """Pad the batch (last axis of every leaf) to a multiple of the device count by repeating its last
-    sample, and place it sharded over the devices. Returns (params, original batch size)."""
+    """The path without slabs (one device, a traced batch, or more than one batch axis): warn once
+    if a large batch runs on one core of several. Returns (params, batch size)."""
     size = int(np.prod(batched.batch_shape))
-    n = jax.device_count()
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched)):
-        return batched, size  # under grad/jit/vmap the caller's transformation decides the layout
-    _warn_one_core(size)
-    if n == 1 or len(batched.batch_shape) != 1:
-        return batched, size
-    pad = -size % n
-    if pad:
-        batched = jax.tree_util.tree_map(
-            lambda x: jax.numpy.concatenate([x, jax.numpy.repeat(x[..., -1:], pad, axis=-1)], axis=-1), batched)
-    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("batch",))
-    return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), batched), size
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched)):
+        _warn_one_core(size)  # under grad/jit/vmap the caller's transformation decides the layout
+    return batched, size
+
+
+def place(tree, devices=None):
+    """Put every leaf on `devices` (default: all), its last (batch) axis split over them."""
+    mesh = jax.sharding.Mesh(np.array(devices or jax.devices()), ("batch",))
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), tree)
 
 
 def slabs(batched, block: int = BLOCK):
@@ -83,9 +80,7 @@ def slabs(batched, block: int = BLOCK):
     pad = -size % slab
     if pad:
         host = [np.concatenate([x, np.repeat(x[..., -1:], pad, axis=-1)], axis=-1) for x in host]
-    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("batch",))
-    place = lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x)))
-    return [jax.tree_util.tree_unflatten(tree, [place(x[..., start:start + slab]) for x in host])
+    return [place(jax.tree_util.tree_unflatten(tree, [x[..., start:start + slab] for x in host]))
             for start in range(0, size + pad, slab)], size
 
 
@@ -115,5 +110,5 @@ def per_device(fn, devices, out_specs=None):
 
 
 def unpad(tree, size: int):
-    """Drop the padding `shard` added (last axis of every array leaf)."""
+    """Drop the padding `slabs` added (last axis of every array leaf)."""
     return jax.tree_util.tree_map(lambda x: x[..., :size] if getattr(x, "ndim", 0) else x, tree)

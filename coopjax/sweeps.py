@@ -241,8 +241,6 @@ class _Runner:
     """Compiles once, then evaluates slabs of `devices x block` samples."""
 
     def __init__(self, spec: SweepSpec, devices):
-        import jax
-
         from coopjax.integration import SimConfig
         from coopjax.model import Options
 
@@ -251,9 +249,6 @@ class _Runner:
         self.block = block_size(spec.n)
         self.config = SimConfig(spec.scenario, Options(switch=spec.switch), integrator=spec.integrator, dt=spec.dt,
                                 T=spec.T)
-        mesh = jax.sharding.Mesh(np.array(self.devices), ("batch",))
-        self.per_robot = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, "batch"))
-        self.shared = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         self.run = _metrics_fn(self.config, tuple(self.devices))
 
     @property
@@ -264,6 +259,7 @@ class _Runner:
         import jax
 
         from coopjax import stability
+        from coopjax.devices import place
         from coopjax.params import make_params
 
         m = len(next(iter(values.values())))
@@ -277,8 +273,7 @@ class _Runner:
             # the devices compute made a small sweep 5x slower (thread contention, measured).
             eig = stability.fastest_modes(params, self.config)
             limit, growth = _significant(stability.max_stable_dt(eig), 6), stability.growing_mode(eig)
-            pending = self.run(jax.tree_util.tree_map(
-                lambda x: jax.device_put(x, self.per_robot if x.ndim == 2 else self.shared), params))
+            pending = self.run(place(params, self.devices))
             metrics = np.stack([np.asarray(x, np.float64) for x in jax.device_get(pending)], axis=1)
             finite = metrics[:, METRICS.index("finite")] > 0.5
             # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of

@@ -91,15 +91,19 @@ class Fields(NamedTuple):
     aux_on: model.Aux
 
 
-def _contact(p, st, s, options, on=None, off=None):
-    """(in_contact, F, kelvin, delta, delta_dot) of one robot, with an optional override."""
-    delta, delta_dot, kelvin = model.geometry(p, st, s)
-    if options.contact == "bilateral":
-        return jnp.ones_like(delta, bool), kelvin, kelvin, delta, delta_dot
-    in_contact = delta > 0.0
-    if on is not None:
-        in_contact = on | (~off & in_contact)
-    return in_contact, jnp.where(in_contact, jnp.maximum(kelvin, 0.0), 0.0), kelvin, delta, delta_dot
+def _contacts(ps, rows: Rows, options, contact: Contact | None = None):
+    """Per robot (in_contact, F, kelvin, delta, delta_dot), with the substep's override if any."""
+    out = []
+    for i in range(2):
+        delta, delta_dot, kelvin = model.geometry(ps[i], rows.robot(i), model.SIGNS[i])
+        if options.contact == "bilateral":
+            out.append((jnp.ones_like(delta, bool), kelvin, kelvin, delta, delta_dot))
+            continue
+        in_contact = delta > 0.0
+        if contact is not None:
+            in_contact = contact.on[i] | (~contact.off[i] & in_contact)
+        out.append((in_contact, jnp.where(in_contact, jnp.maximum(kelvin, 0.0), 0.0), kelvin, delta, delta_dot))
+    return out
 
 
 def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, options):
@@ -109,8 +113,7 @@ def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, opti
     The contact forces come first: the body's acceleration needs both, and neither depends on w.
     """
     commands = scenario.command(ps[0], clock)
-    touch = [_contact(ps[i], rows.robot(i), model.SIGNS[i], options,
-                      *(() if contact is None else (contact.on[i], contact.off[i]))) for i in range(2)]
+    touch = _contacts(ps, rows, options, contact)
     body = model.body_field(ps[0], rows.body, touch[0][1], touch[1][1])
     out = []
     for i in range(2):
@@ -187,10 +190,7 @@ def substep(ps, rows: Rows, clock: Clock, h, contact, scenario, options):
     faster. Returns the new state and both robots' contact forces at the first stage.
     """
     # Every stage's theta uses sigma at the substep start (SLIDING.md step 2): the contact alone.
-    sigma_n = tuple(
-        jnp.where(c[0], c[2], 0.0) - ps[i].F_lim
-        for i, c in enumerate(_contact(ps[i], rows.robot(i), model.SIGNS[i], options,
-                                       *(() if contact is None else (contact.on[i], contact.off[i]))) for i in range(2)))
+    sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, contact), ps))
 
     def stage(carry, tableau):
         k_prev, total = carry
@@ -232,7 +232,7 @@ def step(params, y, t, dt, scenario, options):
     # At the step start the metrics need only F and x_ref, and the impact prediction only the
     # switch-off field: the switch-on field and the weight are left to the stages.
     commands = scenario.command(ps[0], clock)
-    touch = [_contact(ps[i], rows.robot(i), model.SIGNS[i], options) for i in range(2)]
+    touch = _contacts(ps, rows, options)
     F = jnp.stack([touch[0][1], touch[1][1]])
     x_ref = jnp.stack([c[2] for c in commands])
     if options.contact == "bilateral":  # no impacts: one RK4 step

@@ -251,7 +251,7 @@ def run_batch(batched: Params, config: SimConfig) -> tuple[Solution, int]:
 
     Over several devices, a concrete 1-D batch is cut into slabs (`devices.slabs`) dispatched one
     after another without waiting, each device running its own slice of a slab; otherwise one jitted
-    call on the batch as `devices.shard` placed it.
+    call on the batch as it is.
     """
     from coopjax.devices import shard, slabs
 
