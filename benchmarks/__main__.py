@@ -1,7 +1,7 @@
 """coopjax against what a user would otherwise write, on this machine: `python -m benchmarks [--quick]`.
 
 Writes benchmarks/results.json and benchmarks/scaling.png, and prints a table. The carry scenario
-(MODEL.md section 5) at dt = 1e-3 s, T = 4 s. Before any timing counts, every baseline is checked
+(docs/model.md, "Scenarios") at dt = 1e-3 s, T = 4 s. Before any timing counts, every baseline is checked
 against coopjax's forces in float64 (smooth switch with wide widths over the whole carry, hard
 switch over the first 0.25 s, before the hard loop starts to chatter and amplify round-off).
 """
@@ -258,7 +258,7 @@ def summarise(result) -> dict:
     numba_fil = best("numba_filippov", "float64", B)
     ours_fil = s["filippov_steps_per_s"][f"float64_{cores}_device"]
     s["coopjax_over_numba"] = ours_fil / numba_fil if numba_fil and ours_fil else None
-    steps_per_run = round(result["config"]["T"] / 1e-3)  # filippov at dt = 1e-3 is within MODEL.md's tolerances
+    steps_per_run = round(result["config"]["T"] / 1e-3)  # filippov at dt = 1e-3 is within the accuracy tolerances
     s["converged_trajectories_per_s"] = {"coopjax": ours_fil / steps_per_run if ours_fil else None,
                                          "numba": numba_fil / steps_per_run if numba_fil else None}
     s["compile_s"] = {f"{r['impl']}_{r['dtype']}_{r['devices']}_device": r["compile_s"]
@@ -301,9 +301,13 @@ def main(argv=None) -> int:
     parser.add_argument("--lsoda-hard", action="store_true", help="also time LSODA on the hard switch (minutes)")
     parser.add_argument("--max-devices", type=int, default=None, help="largest XLA CPU device count to time "
                         "(default: one per core)")
-    parser.add_argument("--out", default=os.path.join(HERE, "results.json"))
-    parser.add_argument("--plot", default=os.path.join(HERE, "scaling.png"))
+    parser.add_argument("--out", default=None, help="results file (default benchmarks/results.json; with --quick "
+                        "benchmarks/results_quick.json, beside the committed full run, never over it)")
+    parser.add_argument("--plot", default=None, help="figure (default benchmarks/scaling.png; quick: scaling_quick.png)")
     args = parser.parse_args(argv)
+    suffix = "_quick" if args.quick else ""
+    args.out = args.out or os.path.join(HERE, f"results{suffix}.json")
+    args.plot = args.plot or os.path.join(HERE, f"scaling{suffix}.png")
     args.Bs = args.Bs or ("1,64,1024" if args.quick else "1,64,1024,4096")
     args.repeats = args.repeats or (1 if args.quick else 5)
     if args.quick:

@@ -2,7 +2,7 @@
 
     python -m benchmarks.convergence [--quick] [--out benchmarks/convergence.json] [--plot docs/convergence.png]
 
-The limit (MODEL.md section 8) is computed two independent ways that must agree within the
+The limit (docs/model.md, "Step size") is computed two independent ways that must agree within the
 tolerances before anything else counts: `filippov` at dt = 1e-5 and plain `rk4` at dt = 1e-6. Then
 each integrator runs at a ladder of steps, and its error against the limit is reported for min grip
 (N), peak grip and RMS lag (relative). Also measured: converged carry trajectories per second, for
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-# MODEL.md section 8: min grip in N, peak and lag relative.
+# The accuracy tolerances (docs/model.md): min grip in N, peak and lag relative.
 TOLERANCE = {"min_grip": 0.05, "peak_grip": 0.02, "rms_lag": 0.02}
 GAIN_SETS = {
     "table1": dict(K_GP=0.5, K_GI=0.1, tau=1.25, G_e=600.0),
@@ -74,12 +74,11 @@ def trajectories_per_second(integrator: str, dt: float, batch: int, repeats: int
     import jax
 
     import coopjax as cj
-    from coopjax.integration import SimConfig, integrate
-    from coopjax.model import Options
+    from coopjax.simulation import metrics_of
 
-    config = SimConfig("carry", Options(), integrator=integrator, dt=dt)
+    run = metrics_of(cj.Config("carry", integrator=integrator, dt=dt))
     params = cj.make_params(M_b=np.geomspace(0.5, 5.0, batch))
-    compiled = jax.jit(lambda p: integrate(p, config).metrics).lower(params).compile()
+    compiled = jax.jit(lambda p: run(p)).lower(params).compile()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -181,7 +180,7 @@ def plot(result: dict, path: str) -> None:
             ax.plot(dts, np.maximum(errs.max(1), floor), label=f"{integrator}: worst sample", **style[integrator])
             ax.plot(dts, np.maximum(np.median(errs, 1), floor), ls="--", alpha=0.6, label=f"{integrator}: median",
                     color=style[integrator]["color"])
-        ax.axhline(result["tolerance"][metric], color="k", ls=":", lw=1, label="MODEL.md tolerance")
+        ax.axhline(result["tolerance"][metric], color="k", ls=":", lw=1, label="tolerance")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("step dt [s]")

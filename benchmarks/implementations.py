@@ -1,6 +1,6 @@
 """The carry scenario written the ways a user would write it without coopjax.
 
-Each is an independent transcription of MODEL.md sections 3 and 5 (unilateral contact, hard or
+Each is an independent transcription of the model and the carry scenario (docs/model.md) (unilateral contact, hard or
 smooth switch, full base compensation alpha_b = 1, delta0 = 0). The state layout is coopjax's:
 rows 2q and 2q + 1 are quantity q of robots L and R, in the order x_r, v_r, x_v, v_v, q_c, x_f, v_f,
 Z, Y_e, then x_o and v_o.

@@ -1,4 +1,4 @@
-"""The sliding-mode step of SLIDING.md (coopjax/integration/filippov.py), written again in numba: the
+"""The sliding-mode step (coopjax/integration/filippov.py, docs/model.md), written again in numba: the
 peer for the throughput benchmark. Carry scenario, unilateral contact, hard switch, alpha_b = 1,
 delta0 = 0, with the carry metrics accumulated as coopjax does (objectives.accumulate).
 
@@ -250,7 +250,7 @@ def make_numba_filippov():
                             acc_min[i, b] = min(acc_min[i, b], Fk)
                         step_lag += (x_ref - y[i, b]) ** 2
                         step_impact += max(Fk - 15.0, 0.0) ** 2
-                        # SLIDING.md "Impacts": the contact time from the contact-free field.
+                        # "Impacts" (docs/model.md): the contact time from the contact-free field.
                         delta = s * (y[i, b] - y[18, b])
                         delta_dot = s * (y[2 + i, b] - y[19, b])
                         ddd = s * (r0[1] - a_o)
@@ -337,12 +337,11 @@ def make_numba_filippov():
 
     def metrics(P, dt=1e-3, T=4.0, chunk=64, F_bound=1e6):
         """The carry metrics of each column of P (from `parameter_matrix`), float64."""
-        from coopjax import objectives
-        from coopjax.scenarios import SCENARIOS
+        from coopjax import objectives, scenarios
 
         n = max(1, int(round(T / dt)))
-        win = objectives.window(SCENARIOS["carry"], dt, n)
-        return run(np.ascontiguousarray(P, np.float64), float(dt), n, np.array(win.grip), np.array(win.lag),
-                   float(F_bound), int(chunk))
+        ctx = objectives.Context(scenarios.get("carry"), dt, n)
+        return run(np.ascontiguousarray(P, np.float64), float(dt), n, np.array(ctx.window("grip")),
+                   np.array(ctx.window("lag")), float(F_bound), int(chunk))
 
     return metrics

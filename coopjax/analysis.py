@@ -30,9 +30,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import model
+from coopjax import model, scenarios
+from coopjax.errors import InputError
 from coopjax.params import Params, ROBOTS
-from coopjax.scenarios import Clock, get_scenario, stacked
+from coopjax.scenarios import Clock, stacked
+from coopjax.simulation import simulate
+from coopjax.stability import max_stable_dt
 
 INPUTS = tuple(f"{q}_{r}" for q in ("e_env", "v_ref", "gamma") for r in ROBOTS)
 OUTPUTS = model.STATE_NAMES + tuple(f"{q}_{r}" for q in ("F", "gamma", "x_ref") for r in ROBOTS)
@@ -53,12 +56,12 @@ def _control():
 def _names(given, allowed, what):
     given = (given,) if isinstance(given, str) else tuple(given)
     if not given:
-        raise ValueError(f"{what}: name at least one of: {', '.join(allowed)}")
+        raise InputError(f"{what}: name at least one of: {', '.join(allowed)}")
     for name in given:
         if name not in allowed:
-            raise ValueError(f"unknown {what[:-1]} {name!r}; choose from: {', '.join(allowed)}")
+            raise InputError(f"unknown {what[:-1]} {name!r}; choose from: {', '.join(allowed)}")
     if len(set(given)) != len(given):
-        raise ValueError(f"{what}: {', '.join(given)} names one twice")
+        raise InputError(f"{what}: {', '.join(given)} names one twice")
     return given
 
 
@@ -76,7 +79,7 @@ class OperatingPoint:
 
 def _single(params: Params) -> Params:
     if params.batch_shape:
-        raise ValueError(f"linearize takes one parameter set; this one has batch shape {params.batch_shape} "
+        raise InputError(f"linearize takes one parameter set; this one has batch shape {params.batch_shape} "
                          "(make one with scalar values, e.g. make_params(M_b=2.0), and loop over the batch)")
     return params
 
@@ -87,38 +90,36 @@ def operating_point(params: Params, point="rest", *, alpha=None, scenario="paper
     two = np.ones(2)
     if isinstance(point, str):
         if point not in POINTS:
-            raise ValueError(f"point {point!r}: choose 'rest', 'limit' or a time in s")
+            raise InputError(f"point {point!r}: choose 'rest', 'limit' or a time in s")
         if point == "rest":
             if alpha is not None:
-                raise ValueError("alpha freezes gamma with force control on: use point='limit'")
+                raise InputError("alpha freezes gamma with force control on: use point='limit'")
             y = np.zeros(model.N_STATE)
             return OperatingPoint(y, 0.0, 0 * two, two, p, "at rest, force control off (gamma = 1)")
         if alpha is None:
             # Pre-compression delta0 = F_lim / K_g puts the rest state on F = F_lim.
-            p = dataclasses.replace(p, delta0=p.F_lim / p.K_g)
+            p = p.with_leaves(delta0=p.F_lim / p.K_g)
             text = "at the force limit, gamma by Eq. 8"
         else:
             # gamma = 1 - w K_ini = alpha with K_GP = K_GI = 0: the field is then affine in the
             # state, so the pre-compression (which could divide by K_g = 0) does not matter.
             if not np.isfinite(alpha):
-                raise ValueError(f"alpha = {alpha}: it must be a finite number")
+                raise InputError(f"alpha = {alpha}: it must be a finite number")
             zero = jnp.zeros_like(p.K_GP)
-            p = dataclasses.replace(p, K_GP=zero, K_GI=zero, K_ini=jnp.full_like(p.K_ini, 1.0 - alpha))
+            p = p.with_leaves(K_GP=zero, K_GI=zero, K_ini=jnp.full_like(p.K_ini, 1.0 - alpha))
             text = f"at the force limit, gamma frozen at alpha = {alpha:g}"
         return OperatingPoint(np.zeros(model.N_STATE), 0.0, two, two, p, text)
 
     t = float(point)
     if not np.isfinite(t) or t < 0:
-        raise ValueError(f"point t = {point}: a simulated state needs a time >= 0 s")
+        raise InputError(f"point t = {point}: a simulated state needs a time >= 0 s")
     if alpha is not None:
-        raise ValueError("alpha freezes gamma at point='limit'; a simulated state keeps Eq. 8")
-    from coopjax.integration import simulate
-
+        raise InputError("alpha freezes gamma at point='limit'; a simulated state keeps Eq. 8")
     y = np.zeros(model.N_STATE)
     if t > 0:
         solution = simulate(p, scenario, dt=dt, T=t)
         if not bool(solution.metrics.finite):
-            raise ValueError(f"the {scenario} run diverged before t = {t:g} s; no state to linearise at")
+            raise InputError(f"the {scenario} run diverged before t = {t:g} s; no state to linearise at")
         y = np.asarray(solution.y_final, np.float64).reshape(model.N_STATE)
     st = model.unpack(jnp.asarray(y, p.M_b.dtype)[:, None])
     delta, _, F = model.geometry(jax.tree_util.tree_map(lambda x: x[..., None], p), st, model.sign(1, p.M_b.dtype))
@@ -141,7 +142,7 @@ def _field(p, y_op, t, w, contact, y, u, u_dot, scenario, inputs, outputs):
 
     _, _, F = model.geometry(p, st, s)
     F = F * contact[:, None]
-    v_cmd, a_cmd, x_ref = stacked(get_scenario(scenario).command(p, Clock.at(t)))
+    v_cmd, a_cmd, x_ref = stacked(scenarios.get(scenario).command(p, Clock.at(t)))
     v_cmd = v_cmd + per_robot(u, "v_ref")
     a_cmd = a_cmd + per_robot(u_dot, "v_ref")
     if y.shape[0] > n:
@@ -157,7 +158,7 @@ def _field(p, y_op, t, w, contact, y, u, u_dot, scenario, inputs, outputs):
         gamma_op = law(st_op, model.geometry(p, st_op, s)[2] * contact[:, None])
         K_ini = jnp.where(cut, 1.0 - gamma_op - per_robot(u, "gamma"), p.K_ini)
         zero_if_cut = lambda g: jnp.where(cut, 0.0, g)
-        p_run = dataclasses.replace(p, K_ini=K_ini, K_GP=zero_if_cut(p.K_GP), K_GI=zero_if_cut(p.K_GI))
+        p_run = p.with_leaves(K_ini=K_ini, K_GP=zero_if_cut(p.K_GP), K_GI=zero_if_cut(p.K_GI))
     rates, _ = model.robot_field(p_run, st, s, F, w, (v_cmd, a_cmd, x_ref), model.Options(), f_env=per_robot(u, "e_env"))
     dy = model.pack({**rates, **model.body_field(p, st, F[0], F[1])})[:, 0]
     if y.shape[0] > n:
@@ -200,10 +201,10 @@ def linearize(params: Params, point="rest", *, inputs=("e_env_L",), outputs=("v_
     cut_gamma = [f"gamma_{r}" in inputs for r in ROBOTS]
     for i, r in enumerate(ROBOTS):
         if cut_gamma[i] and not op.w[i]:
-            raise ValueError(f"input gamma_{r}: robot {r}'s force control is off at this point, so gamma is 1 "
+            raise InputError(f"input gamma_{r}: robot {r}'s force control is off at this point, so gamma is 1 "
                              "and there is no loop to cut (use point='limit' or a time on the limit)")
     if alpha is not None and any(cut_gamma):
-        raise ValueError("a gamma input cuts Eq. 8's loop; with alpha frozen there is none")
+        raise InputError("a gamma input cuts Eq. 8's loop; with alpha frozen there is none")
     with_ref = "v_ref_L" in inputs or "v_ref_R" in inputs
     n = model.N_STATE + (2 if with_ref else 0)
     with jax.enable_x64(True):  # the analysis is float64 whatever the runs use
@@ -253,21 +254,21 @@ def static_gain(sys) -> np.ndarray:
     U, sv, _ = np.linalg.svd(A)
     null = U[:, sv <= 1e-10 * sv[0]]  # left null vectors: null.T @ A = 0
     if null.size and np.abs(null.T @ B).max() > 1e-9 * np.abs(B).max():
-        raise ValueError("the step response does not settle: an input drives a free integrator")
+        raise InputError("the step response does not settle: an input drives a free integrator")
     M = np.vstack([A, null.T])
     rhs = np.vstack([-B, np.zeros((null.shape[1], B.shape[1]))])
     y, *_ = np.linalg.lstsq(M, rhs, rcond=None)
     if np.abs(M @ y - rhs).max() > 1e-8 * max(1.0, np.abs(rhs).max()):
-        raise ValueError("the step response does not settle: there is no rest state for a constant input")
+        raise InputError("the step response does not settle: there is no rest state for a constant input")
     if np.linalg.eigvals(A).real.max() > 1e-9 * sv[0]:
-        raise ValueError("the step response does not settle: the linearised loop is unstable")
+        raise InputError("the step response does not settle: the linearised loop is unstable")
     return C @ y + D
 
 
 def free_robot(params: Params) -> Params:
     """The robot of the paper's section 2: the grip cut (K_g = R_g = 0), so the tip feels only e_env."""
     zero = jnp.zeros_like(params.K_g)
-    return dataclasses.replace(params, K_g=zero, R_g=zero)
+    return params.with_leaves(K_g=zero, R_g=zero)
 
 
 def k_rob(params: Params, alpha: float, robot: str = "L") -> float:
@@ -324,8 +325,6 @@ def margins(loop, omega=None) -> dict:
 
 def poles_summary(poles: np.ndarray, dt: float) -> dict:
     """The figures a user checks a step against: the fastest and slowest modes and RK4's limit."""
-    from coopjax.stability import max_stable_dt
-
     poles = np.asarray(poles)
     moving = poles[np.abs(poles) > 1e-9 * np.abs(poles).max()]
     oscillatory = moving[moving.imag > 1e-9]

@@ -1,43 +1,45 @@
-"""All of this machine's cores for one batch: JAX's CPU backend as one device per core, and the
-batch sharded over them.
+"""All of this machine's cores for one batch: the one place a batch is put on the devices.
 
 JAX fixes its CPU device count when its backend starts, so it cannot be changed on import without
-changing the user's JAX for them. `use_all_cores()` is the one call that does it, first thing;
-`simulate` then shards any batch over the devices, and warns once when a large batch runs on one
-core of several.
+changing the user's JAX for them. `use_all_cores()` is the one call that does it, first thing.
+
+`run(fn, params)` then runs `fn` on a batch (the last axis of every leaf) over every local device:
+padding, slabs, `shard_map`, unpadding. `simulate`, the sweeps and the tuner all go through it.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+from coopjax.errors import InputError
 
 LARGE_BATCH = 1024  # samples: below this, one core is not worth a warning
 # Samples per device per dispatch when a batch runs over several devices: the step's working set
 # then stays in cache. On this 2-core CPU, at B = 4096 over 2 devices, blocks of 256 ran plain RK4
 # 1.8x (float32) and 1.4x (float64) faster than one dispatch of the whole batch, and the
-# sliding-mode step 1.3x (measured with `benchmarks/profile_step.py`'s setup, paired runs). The
-# sweep runner uses the same block, so its tables do not depend on the chunk size.
+# sliding-mode step 1.3x (paired runs, `benchmarks/profile_step.py`'s setup).
 BLOCK = 256
 _warned = False
 
 
 def use_all_cores(n: int | None = None) -> int:
     """One XLA CPU device per core (or `n`); call before any JAX computation. Returns the count."""
-    n = n or os.cpu_count() or 1
-    if n < 1:
-        raise ValueError(f"n = {n}: at least one device")
+    n = (os.cpu_count() or 1) if n is None else n
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InputError(f"n = {n!r}: at least one device", "n")
     try:
         jax.config.update("jax_num_cpu_devices", int(n))
     except RuntimeError:
         if jax.device_count() != n:
-            raise RuntimeError(
+            raise InputError(
                 f"JAX has already started with {jax.device_count()} device(s): call coopjax.use_all_cores() "
-                "before anything creates a JAX array (first thing after the imports)"
-            ) from None
+                "before anything creates a JAX array (first thing after the imports)") from None
     return jax.device_count()
 
 
@@ -48,67 +50,99 @@ def _warn_one_core(batch: int) -> None:
         _warned = True
         warnings.warn(
             f"a batch of {batch} runs on 1 of this machine's {cores} cores: call coopjax.use_all_cores() "
-            "first thing in your program to shard batches over all of them", stacklevel=3)
+            "first thing in your program to shard batches over all of them", stacklevel=4)
 
 
-def shard(batched):
-    """The path without slabs (one device, a traced batch, or more than one batch axis): warn once
-    if a large batch runs on one core of several. Returns (params, batch size)."""
-    size = int(np.prod(batched.batch_shape))
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batched)):
-        _warn_one_core(size)  # under grad/jit/vmap the caller's transformation decides the layout
-    return batched, size
+def batch_spec(x, batched: bool = True) -> jax.sharding.PartitionSpec:
+    """Split an array's last (batch) axis over the mesh's "batch" axis; anything else is replicated."""
+    ndim = getattr(x, "ndim", 0)
+    if not (batched and ndim):
+        return jax.sharding.PartitionSpec()
+    return jax.sharding.PartitionSpec(*([None] * (ndim - 1) + ["batch"]))
 
 
-def place(tree, devices=None):
-    """Put every leaf on `devices` (default: all), its last (batch) axis split over them."""
-    mesh = jax.sharding.Mesh(np.array(devices or jax.devices()), ("batch",))
+def _all_batched(out):
+    return jax.tree_util.tree_map(lambda x: getattr(x, "ndim", 0) > 0, out)
+
+
+def _per_device(fn, devices, batched):
+    """`fn` run by each device on its own slice of the batch (shard_map): nothing crosses devices
+    inside the time loop. Under GSPMD, the sliding-mode step's batch-wide "does any sample hit in
+    this step" was an all-reduce per substep, and two devices ran 1.2x faster than one instead of 1.9x."""
+    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+
+    def apply(params):
+        shapes = jax.eval_shape(fn, params)
+        out_specs = jax.tree_util.tree_map(batch_spec, shapes, batched(shapes))
+        in_specs = jax.tree_util.tree_map(batch_spec, params)
+        return jax.shard_map(fn, mesh=mesh, in_specs=(in_specs,), out_specs=out_specs, check_vma=False)(params)
+
+    return apply
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(fn, n_devices: int, batched, per_device: bool):
+    # Through a closure: jit keeps a weak reference to what it compiles, and `fn` may be a NamedTuple.
+    if not per_device:
+        return jax.jit(lambda params: fn(params))
+    return jax.jit(_per_device(lambda params: fn(params), jax.local_devices()[:n_devices], batched))
+
+
+def _place(tree, n_devices):
+    mesh = jax.sharding.Mesh(np.array(jax.local_devices()[:n_devices]), ("batch",))
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), tree)
 
 
-def slabs(batched, block: int = BLOCK):
-    """A concrete batch (last axis of every leaf) as slabs of `devices x block` samples (or one slab
-    of the whole batch, padded to a multiple of the device count, if it is smaller), each placed
-    split over the devices. The last slab is padded by repeating the last sample, so all slabs share
-    one compiled program. Cut on the host: slicing device arrays cost a dispatch per leaf and slab.
-    Returns (slabs, original batch size)."""
-    leaves, tree = jax.tree_util.tree_flatten(batched)
-    host = [np.asarray(x) for x in leaves]
-    size, n = host[0].shape[-1], jax.device_count()
-    _warn_one_core(size)
-    slab = n * block if size > n * block else -(-size // n) * n
-    pad = -size % slab
-    if pad:
-        host = [np.concatenate([x, np.repeat(x[..., -1:], pad, axis=-1)], axis=-1) for x in host]
-    return [place(jax.tree_util.tree_unflatten(tree, [x[..., start:start + slab] for x in host]))
-            for start in range(0, size + pad, slab)], size
+def _pad(leaves, pad, xp):
+    if not pad:
+        return leaves
+    return [xp.concatenate([x, xp.repeat(x[..., -1:], pad, axis=-1)], axis=-1) for x in leaves]
 
 
-def batch_spec(x) -> jax.sharding.PartitionSpec:
-    """Split an array's last (batch) axis over the mesh's "batch" axis; a scalar is replicated."""
-    ndim = getattr(x, "ndim", 0)
-    return jax.sharding.PartitionSpec(*([None] * (ndim - 1) + ["batch"])) if ndim else jax.sharding.PartitionSpec()
+def _unpad(out, size, batched):
+    return jax.tree_util.tree_map(lambda x, b: x[..., :size] if b else x, out, batched(out))
 
 
-def per_device(fn, devices, out_specs=None):
-    """`fn` (params with a batch last axis -> arrays with it) run by each device on its own slice.
+def run(fn, params, *, batched=_all_batched, block: int = BLOCK, fixed_block: bool = False, shard_traced: bool = False,
+        devices: int | None = None):
+    """`fn(params)` on a batch of parameter sets (the last axis of every leaf), over the local devices.
 
-    With `shard_map`, nothing crosses devices inside the time loop: a batch-wide test such as the
-    sliding-mode step's "does any sample hit in this step" is taken per device. Under GSPMD it was
-    an all-reduce per substep, and two devices ran float64 filippov 1.2x faster than one instead of
-    1.9x (measured). `out_specs` defaults to the batch last axis on every output leaf.
+    - A concrete batch over several devices is cut on the host into slabs of `devices x block`
+      samples, dispatched one after another without waiting, each device running its own slice; a
+      batch smaller than that is one slab padded to a multiple of the device count (with
+      `fixed_block`, every slab is `devices x block`, so the compiled program never depends on the
+      batch size: the sweeps' tables are bit-identical whatever their chunking). The padding repeats
+      the last sample, and is dropped from the results.
+    - A traced batch (under the caller's `jit` or `grad`) runs as `fn` in the caller's program, or,
+      with `shard_traced`, padded and split over the devices inside it.
+    - With one device, `fn` is jitted (concrete) or called (traced) as it is.
+
+    `fn` must be hashable (it keys the cache of compiled programs) and map a batch to a pytree
+    whose leaves, where `batched(out)` says so, carry the batch as their last axis.
     """
-    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
-
-    def run(params):
-        specs = out_specs if out_specs is not None else jax.tree_util.tree_map(
-            batch_spec, jax.eval_shape(fn, params))
-        in_specs = jax.tree_util.tree_map(batch_spec, params)
-        return jax.shard_map(fn, mesh=mesh, in_specs=(in_specs,), out_specs=specs, check_vma=False)(params)
-
-    return run
-
-
-def unpad(tree, size: int):
-    """Drop the padding `slabs` added (last axis of every array leaf)."""
-    return jax.tree_util.tree_map(lambda x: x[..., :size] if getattr(x, "ndim", 0) else x, tree)
+    leaves, tree = jax.tree_util.tree_flatten(params)
+    shape = np.shape(leaves[0])[-1:] if leaves and np.ndim(leaves[0]) else ()
+    size = int(shape[0]) if shape else 1
+    n = devices or jax.local_device_count()
+    traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
+    if traced:
+        if not (shard_traced and n > 1 and shape):
+            return fn(params)
+        pad = -size % n
+        padded = jax.tree_util.tree_unflatten(tree, _pad(leaves, pad, jnp))
+        return _unpad(_per_device(lambda p: fn(p), jax.local_devices()[:n], batched)(padded), size, batched)
+    _warn_one_core(size)
+    if not shape or (n == 1 and not fixed_block):
+        return _compiled(fn, 1, batched, False)(params)
+    slab = n * block if (fixed_block or size > n * block) else -(-size // n) * n
+    pad = -size % slab
+    host = _pad([np.asarray(x) for x in leaves], pad, np)
+    program = _compiled(fn, n, batched, n > 1)
+    place = (lambda t: _place(t, n)) if n > 1 else (lambda t: t)
+    parts = [program(place(jax.tree_util.tree_unflatten(tree, [x[..., s:s + slab] for x in host])))
+             for s in range(0, size + pad, slab)]
+    if len(parts) == 1:
+        return _unpad(parts[0], size, batched)
+    flags = batched(parts[0])
+    out = jax.tree_util.tree_map(lambda b, *xs: jnp.concatenate(xs, axis=-1) if b else xs[0], flags, *parts)
+    return _unpad(out, size, batched)

@@ -1,4 +1,4 @@
-"""The closed loop of MODEL.md section 3: two robots on free-floating bases gripping one body.
+"""The closed loop (docs/model.md): two robots on free-floating bases gripping one body.
 
 State layout (20 rows, batch on the last axis): rows 0-17 are nine per-robot quantities, each a
 (2, B) block with robot L first, in the order of `ROBOT_STATES`; rows 18 and 19 are the body's
@@ -13,14 +13,15 @@ split XLA's fusions and made the step 3.5x slower (README, "Measured speed").
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from coopjax import surrogates
-from coopjax.params import PER_ROBOT, Params
+from coopjax.errors import InputError
+from coopjax.params import Params, per_robot_names
 from coopjax.scenarios import Clock, Scenario
 
 ROBOT_STATES = ("x_r", "v_r", "x_v", "v_v", "q_c", "x_f", "v_f", "Z", "Y_e")
@@ -39,7 +40,7 @@ SIGNS = (1.0, -1.0)  # s_i for robot L and robot R, in the robot-row layout
 
 def robot_params(p: Params, i: int) -> Params:
     """Robot i's view of the parameters: its per-robot leaves (B,) and the shared ones."""
-    return dataclasses.replace(p, **{n: getattr(p, n)[i] for n in PER_ROBOT})
+    return p.with_leaves(**{n: getattr(p, n)[i] for n in per_robot_names()})
 
 
 def robots(params):
@@ -91,7 +92,7 @@ class Options(NamedTuple):
 
     switch: str = "hard"  # "hard" | "smooth" | "blend" | "straight_through"
     contact: str = "unilateral"  # "unilateral" | "bilateral"
-    gamma_min: float | None = None  # optional floor on gamma; MODEL.md leaves gamma unclipped
+    gamma_min: float | None = None  # optional floor on gamma; the paper leaves gamma unclipped
 
 
 SWITCHES = ("hard", "smooth", "blend", "straight_through")
@@ -100,9 +101,11 @@ CONTACTS = ("unilateral", "bilateral")
 
 def check_options(options: Options) -> None:
     if options.switch not in SWITCHES:
-        raise ValueError(f"unknown switch {options.switch!r}; choose one of: {', '.join(SWITCHES)}")
+        raise InputError(f"unknown switch {options.switch!r}; choose one of: {', '.join(SWITCHES)}", "switch")
     if options.contact not in CONTACTS:
-        raise ValueError(f"unknown contact {options.contact!r}; choose one of: {', '.join(CONTACTS)}")
+        raise InputError(f"unknown contact {options.contact!r}; choose one of: {', '.join(CONTACTS)}", "contact")
+    if options.gamma_min is not None and not (isinstance(options.gamma_min, (int, float)) and np.isfinite(options.gamma_min)):
+        raise InputError(f"gamma_min is {options.gamma_min!r}: a finite number, or None for no floor", "gamma_min")
 
 
 class Aux(NamedTuple):
@@ -212,7 +215,7 @@ def robot_field(p: Params, st, s, F, w, command, options: Options, F_gamma=None,
     `w` may be an array (the hard or smooth switch) or the number 0 or 1 (the two fields the
     sliding-mode integrator combines). `F_gamma` and `F_memory` are the forces that modulate gamma
     (Eq. 8) and drive the memory Z (Eq. 9); both default to F. The switch-on field of the
-    sliding-mode integrator clamps them at F_lim (SLIDING.md, "Structure that makes it cheap").
+    sliding-mode integrator clamps them at F_lim (integration/filippov.py, "What makes it cheap").
     `f_env` is an external force on each tip along +x (the input of the linear analysis; None in runs).
     Returns (rates, Aux); `rates["v_r"]` is the tip acceleration a_r.
     """
@@ -265,7 +268,7 @@ def ground_robot_field(params: Params, y, e_env, alpha):
 
     Parameters are robot L's (index 0). The base is fixed, so the measured velocity is v_r.
     """
-    p = dataclasses.replace(params, **{n: getattr(params, n)[0] for n in PER_ROBOT})
+    p = robot_params(params, 0)
     x_r, v_r, q_c, x_f, v_f = y
     zero = jnp.zeros_like(v_r)
     err, _, a_r, a_f = controller(p, zero, zero, v_r, q_c, x_f, v_f, alpha, e_env, 0.0)

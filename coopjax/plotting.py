@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from coopjax.errors import InputError
 from coopjax.io import atomic_path
+from coopjax.params import PARAMETERS, split_name
+from coopjax.stability import rk4_amplification
+from coopjax.sweeps import column_units
 
 
 def _pyplot():
@@ -71,15 +75,12 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
 
 
 def _label(name: str) -> str:
-    """A column name with its unit: parameters from PARAMETERS, metrics from the sweep's table."""
-    from coopjax.params import PARAMETERS, split_name
-    from coopjax.sweeps import COLUMN_UNITS
-
-    unit = COLUMN_UNITS.get(name)
+    """A column name with its unit: parameters from PARAMETERS, metrics from their declarations."""
+    unit = column_units().get(name)
     if unit is None:
         try:
             unit = PARAMETERS[split_name(name)[0]].unit
-        except (KeyError, ValueError):
+        except (KeyError, InputError):
             return name
     return f"{name} [{unit.split(',')[0]}]"
 
@@ -105,7 +106,8 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     if y in ("min_grip", "peak_grip") and "F_lim" not in columns:
         ax.axhline(10.0, color="k", ls="--", lw=1, label="F_lim (Table 1)")
         ax.legend(fontsize=8)
-    logx = x in ("M_b",) or (xs[np.isfinite(xs)] > 0).all() and np.nanmax(xs) / max(np.nanmin(xs), 1e-300) > 50
+    positive = xs[shown & (xs > 0)]
+    logx = positive.size == shown.sum() > 0 and (x == "M_b" or positive.max() / positive.min() > 50)
     if logx:
         ax.set_xscale("log")
     ax.set_ylabel(_label(y))
@@ -178,8 +180,6 @@ def plot_k_rob(report: dict, path: str) -> None:
 
 def plot_poles(report: dict, path: str) -> None:
     """Closed-loop poles at rest and at the force limit, over RK4's stability region at dt."""
-    from coopjax.stability import rk4_amplification
-
     plt = _pyplot()
     dt = report["dt"]
     fig, (wide, near) = plt.subplots(1, 2, figsize=(12, 5.5), constrained_layout=True)

@@ -18,32 +18,25 @@ mode lives (at K_GP = 5 the carry ran finite at 4x the limit, with either integr
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import model
-from coopjax.params import Params, as_batched, _is_tracer
-from coopjax.scenarios import get_scenario
-
+from coopjax import model, scenarios
+from coopjax.errors import InputError
+from coopjax.integration import INTEGRATORS, max_stable_dt, rk4_amplification
+from coopjax.params import Params, as_batched, is_traced
 
 MIN_PRACTICAL_DT = 1e-9  # s: a loop that needs a finer step than this has a parameter wrong
 
 
-def rk4_amplification(z):
-    return np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
-
-
 def _jacobians(params: Params, scenario_name: str, options) -> jax.Array:
-    scenario = get_scenario(scenario_name)
+    scenario = scenarios.get(scenario_name)
     options = options._replace(contact="bilateral", switch="hard")
 
     def jacobian(p, F_op):
         # The operating force comes from a pre-compression delta0 = F_op / K_g.
-        p = dataclasses.replace(p, delta0=F_op / p.K_g)
+        p = p.with_leaves(delta0=F_op / p.K_g)
         f = lambda y: model.vector_field(p, y[:, None], 0.0, scenario, options)[0][:, 0]
         return jax.jacfwd(f)(jnp.zeros(model.N_STATE, p.M_b.dtype))
 
@@ -67,40 +60,10 @@ def fastest_modes(params: Params, config) -> np.ndarray:
     return np.linalg.eigvals(J)
 
 
-def _first_exit(theta: np.ndarray) -> np.ndarray:
-    """|z| at which the ray z = r e^{i theta} from 0 first leaves RK4's stability region (fine scan,
-    then bisection). 0 for rays into the right half-plane, where |R(z)| > 1 at once."""
-    r = np.linspace(0.0, 3.0, 301)[1:]
-    inside = rk4_amplification(r[None, :] * np.exp(1j * theta)[:, None]) <= 1 + 1e-12
-    first_out = np.where(inside.all(axis=1), r.size, np.argmin(inside, axis=1))
-    lo = np.where(first_out > 0, r[np.maximum(first_out - 1, 0)], 0.0)
-    hi = r[np.minimum(first_out, r.size - 1)]
-    for _ in range(40):
-        mid = (lo + hi) / 2
-        ok = rk4_amplification(mid * np.exp(1j * theta)) <= 1 + 1e-12
-        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
-    return np.where(first_out == 0, 0.0, lo)
-
-
-@functools.cache
-def _region():
-    """The stable radius along each direction of the left half-plane (and the imaginary axis)."""
-    theta = np.linspace(np.pi / 2, 3 * np.pi / 2, 4001)
-    return theta, _first_exit(theta)
-
-
-def max_stable_dt(eigenvalues: np.ndarray) -> np.ndarray:
-    """Largest dt with every mode inside RK4's stability region, per sample: min over modes of the
-    region's radius along the mode's direction over |lambda| (0 if a mode grows, Re lambda > 0)."""
-    lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
-    size = np.abs(lam)
-    theta = np.mod(np.angle(lam), 2 * np.pi)
-    radius = np.interp(theta, *_region(), left=0.0, right=0.0)
-    # Modes at 0 (the free-floating bases, conserved integrals) limit nothing.
-    tiny = size <= 1e-9 * np.maximum(size.max(axis=1, keepdims=True), 1e-300)
-    with np.errstate(divide="ignore"):
-        limit = np.where(tiny, np.inf, radius / np.where(tiny, 1.0, size))
-    return limit.min(axis=1)
+def stable_dt(params: Params, config) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: the largest stable step of the configured integrator, and the largest growth rate."""
+    eig = fastest_modes(params, config)
+    return INTEGRATORS[config.method].stable_dt(eig), growing_mode(eig)
 
 
 def growing_mode(eigenvalues: np.ndarray) -> np.ndarray:
@@ -112,31 +75,31 @@ def growing_mode(eigenvalues: np.ndarray) -> np.ndarray:
 
 
 def check_step(params: Params, config) -> None:
-    """Raise ValueError if config.dt is beyond RK4's stability limit for any sample."""
-    if any(_is_tracer(x) for x in jax.tree_util.tree_leaves(params)):
+    """Raise InputError if config.dt is beyond the integrator's stability limit for any sample."""
+    if is_traced(params):
         return
     eig = fastest_modes(params, config)
     growth = growing_mode(eig)
     where = lambda i: f" (sample {i})" if params.batch_shape else ""
     if (growth > 0).any():
         worst = int(np.argmax(growth))
-        raise ValueError(
+        raise InputError(
             f"these parameters make the loop unstable{where(worst)}: its linearisation has a mode growing at "
             f"{growth[worst]:.3g} 1/s, so no step size helps; check the signs and sizes of the gains "
-            "(e.g. K_GP, F_lim, masses)"
-        )
-    limit = max_stable_dt(eig)
+            "(e.g. K_GP, F_lim, masses)", "params")
+    limit = INTEGRATORS[config.method].stable_dt(eig)
     worst = int(np.argmin(limit))
     if limit[worst] < MIN_PRACTICAL_DT:
-        raise ValueError(
+        raise InputError(
             f"these parameters make the loop extremely stiff{where(worst)}: its fastest linearised mode is "
             f"{np.abs(eig[worst]).max():.3g} 1/s, which a fixed step resolves only below {limit[worst]:.3g} s; "
-            "check the parameters (a tiny mass or a huge gain?)"
-        )
+            "check the parameters (a tiny mass or a huge gain?)", "params")
     if config.dt > limit[worst]:
         fastest = np.abs(eig[worst]).max()
-        raise ValueError(
+        raise InputError(
             f"dt = {config.dt:g} s is too large for {config.method} on this loop{where(worst)}: its fastest linearised "
-            f"mode is {fastest:.3g} 1/s, so its RK4 stages are stable only for dt <= {limit[worst]:.3g} s; "
-            f"use dt <= {limit[worst] / 4:.2g} s for accuracy"
-        )
+            f"mode is {fastest:.3g} 1/s, so its stages are stable only for dt <= {limit[worst]:.3g} s; "
+            f"use dt <= {limit[worst] / 4:.2g} s for accuracy", "dt")
+
+
+__all__ = ["check_step", "fastest_modes", "growing_mode", "max_stable_dt", "rk4_amplification", "stable_dt"]

@@ -1,4 +1,4 @@
-"""The switch `swi` (Eq. 8) and the gripper contact, hard and smooth (MODEL.md sections 3 and 4).
+"""The switch `swi` (Eq. 8) and the gripper contact, hard and smooth (docs/model.md).
 
 The hard forms are the reference model. The smooth forms have explicit widths (k_F, k_c in N,
 eps_delta in m, all parameters so they can be annealed under jit) and tend to the hard forms as the

@@ -14,31 +14,51 @@ results are gathered with `process_allgather`, and process 0 writes them.
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import json
 import math
 import os
+import sys
 import zlib
 from typing import NamedTuple
 
+import jax
 import numpy as np
+import pandas as pd
+from jax.experimental import multihost_utils
+from tqdm.auto import tqdm
 
-from coopjax import objectives
+from coopjax import devices, objectives, stability
+from coopjax.config import Config
+from coopjax.errors import InputError
 from coopjax.io import atomic_path
-from coopjax.params import PARAMETERS, split_name
-from coopjax.progress import Progress
+from coopjax.params import PARAMETERS, default_dtype, make_params, split_name
+from coopjax.simulation import memory_limit, metrics_of
 
 KINDS = ("uniform", "loguniform", "normal", "choice", "grid")
-METRICS = objectives.METRIC_NAMES
 # Why a sample is not trusted, most basic first. `finite` in the table is 1 only for "ok".
 STATUSES = ("ok", "diverged", "unstable_loop", "step_beyond_limit")
-COLUMNS_PER_SAMPLE = METRICS + ("dt_limit", "status")
-COLUMN_UNITS = {
-    "sample": "index", "min_grip": "N", "peak_grip": "N", "slip": "N^2", "crush": "N^2", "rms_lag": "m",
-    "impact": "N^2", "finite": "1 if trusted (status ok), else 0", "t_diverged": "s (NaN if it did not)",
+BOOKKEEPING = {
+    "finite": "1 if trusted (status ok), else 0", "t_diverged": "s (NaN if it did not)",
     "dt_limit": "s, the largest stable step of the linearised loop", "status": "|".join(STATUSES),
 }
-CHUNK_FORMAT = 2  # bumped when a chunk file's columns change, so --resume never mixes formats
+CHUNK_FORMAT = 3  # bumped when a chunk file's layout changes, so --resume never mixes formats
+
+
+def columns_per_sample(config: Config) -> tuple[str, ...]:
+    """The result columns of a sweep table: the configured metrics, then the bookkeeping."""
+    return tuple(config.metrics) + tuple(BOOKKEEPING)
+
+
+def column_units(config: Config | None = None) -> dict[str, str]:
+    """Every result column's unit: the metrics' own declarations, then the bookkeeping."""
+    names = config.metrics if config is not None else tuple(objectives.METRICS)
+    return {"sample": "index", **{n: objectives.METRICS[n].unit for n in names}, **BOOKKEEPING}
+
+
+def result_columns() -> tuple[str, ...]:
+    """Every column a sweep may add beside the parameters (any registered metric)."""
+    return ("sample",) + tuple(objectives.METRICS) + tuple(BOOKKEEPING)
 
 
 class Distribution(NamedTuple):
@@ -53,33 +73,36 @@ class Distribution(NamedTuple):
 def parse_distribution(name: str, text: str) -> Distribution:
     """`uniform:a:b`, `loguniform:a:b`, `normal:mean:sd`, `choice:v1,v2,...`, `grid:a:b:k`."""
     base, _ = split_name(name)
+    if not isinstance(text, str):
+        raise InputError(f"vary {name}: expected a distribution such as 'uniform:a:b', got {text!r}", "vary")
+    where = f"vary {name}={text}"
     kind, _, rest = text.partition(":")
     if kind not in KINDS:
-        raise ValueError(f"--vary {name}={text}: unknown distribution {kind!r}; use one of {', '.join(KINDS)}")
+        raise InputError(f"{where}: unknown distribution {kind!r}; use one of {', '.join(KINDS)}", "vary")
     parts = rest.split(",") if kind == "choice" else rest.split(":")
     try:
         values = tuple(float(p) for p in parts)
     except ValueError:
-        raise ValueError(f"--vary {name}={text}: {rest!r} are not all numbers") from None
+        raise InputError(f"{where}: {rest!r} are not all numbers", "vary") from None
     expected = {"uniform": 2, "loguniform": 2, "normal": 2, "grid": 3}.get(kind)
     usage = {"uniform": "uniform:a:b", "loguniform": "loguniform:a:b", "normal": "normal:mean:sd",
              "grid": "grid:a:b:k", "choice": "choice:v1,v2,..."}[kind]
     if (expected and len(values) != expected) or not values or not all(map(math.isfinite, values)):
-        raise ValueError(f"--vary {name}={text}: expected {usage} with finite numbers")
+        raise InputError(f"{where}: expected {usage} with finite numbers", "vary")
     if kind in ("uniform", "loguniform", "grid") and values[1] < values[0]:
-        raise ValueError(f"--vary {name}={text}: the upper bound is below the lower bound")
+        raise InputError(f"{where}: the upper bound is below the lower bound", "vary")
     if kind == "loguniform" and values[0] <= 0:
-        raise ValueError(f"--vary {name}={text}: loguniform needs a positive lower bound")
+        raise InputError(f"{where}: loguniform needs a positive lower bound", "vary")
     if kind == "normal" and values[1] < 0:
-        raise ValueError(f"--vary {name}={text}: the standard deviation must not be negative")
+        raise InputError(f"{where}: the standard deviation must not be negative", "vary")
     if kind == "grid" and (values[2] < 1 or values[2] != int(values[2])):
-        raise ValueError(f"--vary {name}={text}: the grid size k must be a whole number >= 1")
+        raise InputError(f"{where}: the grid size k must be a whole number >= 1", "vary")
     check = PARAMETERS[base].check
     low = {"uniform": values[0], "loguniform": values[0], "grid": values[0], "choice": min(values)}.get(kind)
     if check == "positive" and low is not None and low <= 0:
-        raise ValueError(f"--vary {name}={text}: {base} must be positive, but the range reaches {low:g}")
+        raise InputError(f"{where}: {base} must be positive, but the range reaches {low:g}", "vary")
     if check == "nonnegative" and low is not None and low < 0:
-        raise ValueError(f"--vary {name}={text}: {base} must not be negative, but the range reaches {low:g}")
+        raise InputError(f"{where}: {base} must not be negative, but the range reaches {low:g}", "vary")
     return Distribution(kind, values)
 
 
@@ -91,7 +114,8 @@ def _splitmix64(x: np.ndarray) -> np.ndarray:
 
 
 def _uniform(seed: int, stream: str, index: np.ndarray) -> np.ndarray:
-    """U[0, 1) with 53 bits, a pure function of (seed, stream, index)."""
+    """U[0, 1) with 53 bits, a pure function of (seed, stream, index). A counter-based hash rather
+    than numpy's generators: sample i's draw must not depend on how many samples came before it."""
     with np.errstate(over="ignore"):
         key = _splitmix64(np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ np.uint64(zlib.crc32(stream.encode())))
         bits = _splitmix64(key ^ _splitmix64(index.astype(np.uint64)))
@@ -132,67 +156,90 @@ def draw(dists: dict[str, Distribution], index: np.ndarray, seed: int) -> dict[s
 class SweepSpec(NamedTuple):
     """Everything that fixes a sweep's table. Stored beside the chunk files to guard --resume."""
 
-    scenario: str = "carry"
+    config: Config = Config()
     n: int = 0
     vary: tuple = ()  # ((name, text), ...)
     fixed: tuple = ()  # ((name, value), ...)
     seed: int = 0
-    switch: str = "hard"
-    dt: float = 1e-3
-    T: float | None = None
-    x64: bool = False
-    table: tuple = ()  # ((name, values), ...) from --from
-    integrator: str | None = None  # None: filippov for the hard switch, rk4 otherwise
+    table: tuple = ()  # ((name, values), ...) from a table of parameter sets
 
     def to_json(self) -> str:
         d = self._asdict()
+        d["config"] = json.loads(self.config.to_json())
         d["table"] = [(name, list(map(float, v))) for name, v in self.table]
         return json.dumps(d, sort_keys=True)
 
     def distributions(self) -> dict[str, Distribution]:
         return {name: parse_distribution(name, text) for name, text in self.vary}
 
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return columns_per_sample(self.config)
 
-def make_spec(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard", dt=1e-3, T=None,
-              x64=False, table=None, integrator=None) -> SweepSpec:
-    """Validate and freeze a sweep description; raises ValueError on any mistake."""
-    from coopjax.integration import SimConfig, default_integrator
-    from coopjax.model import Options
 
-    integrator = integrator or default_integrator(switch)
-    SimConfig(scenario, Options(switch=switch), integrator=integrator, dt=float(dt), T=T).validate()
-    vary = dict(vary or {})
-    fixed = dict(fixed or {})
+def make_spec(config: Config | str = "carry", n=None, vary=None, fixed=None, seed=0, table=None, **settings) -> SweepSpec:
+    """Validate and freeze a sweep description; raises InputError on any mistake.
+
+    `config` (or a scenario name) with `settings` (any `Config` field) fixes how each sample runs;
+    `vary` maps names to distributions, `fixed` names to values, `table` names to columns of values.
+    """
+    config = Config.of(config, **settings)
+    if config.dtype is None:  # the table must not depend on a global flag at resume time
+        config = dataclasses.replace(config, dtype=np.dtype(default_dtype()).name)
+    config.validate()
+    for arg, value in (("vary", vary), ("fixed", fixed), ("table", table)):
+        if value is not None and not isinstance(value, dict):
+            raise InputError(f"{arg} must be a dict of names to values, got {type(value).__name__}", arg)
+    vary, fixed = dict(vary or {}), dict(fixed or {})
     table = {k: np.asarray(v, np.float64) for k, v in (table or {}).items()}
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed is {seed!r}: a whole number, 0 or more", "seed")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer))):
+        raise InputError(f"n is {n!r}: a whole number of samples", "n")
     dists = {name: parse_distribution(name, text) for name, text in vary.items()}
     for name in list(fixed) + list(table):
         split_name(name)
     clash = (set(vary) & set(fixed)) | (set(table) & (set(vary) | set(fixed)))
     if clash:
-        raise ValueError(f"{sorted(clash)[0]} is given twice (--vary, --set or --from): give it once")
+        raise InputError(f"{sorted(clash)[0]} is given twice (varied, fixed or from a table): give it once", "vary")
+    lengths = {len(v) for v in table.values()}
+    if len(lengths) > 1:
+        raise InputError(f"the table's columns have different lengths ({sorted(lengths)})", "table")
     implied = grid_size(dists)
     rows = len(next(iter(table.values()))) if table else None
     for candidate in (implied, rows):
         if candidate is not None and n is not None and n != candidate:
-            raise ValueError(f"--n {n} disagrees with the {candidate} samples implied by the grid or the table")
+            raise InputError(f"n = {n} disagrees with the {candidate} samples implied by the grid or the table", "n")
     if implied is not None and rows is not None and implied != rows:
-        raise ValueError(f"the grid implies {implied} samples but the table has {rows} rows")
+        raise InputError(f"the grid implies {implied} samples but the table has {rows} rows", "table")
     n = n if n is not None else implied if implied is not None else rows
     if n is None or n < 1:
-        raise ValueError("say how many samples: --n N (or use grid axes, or --from a table)")
+        raise InputError("say how many samples: n (or grid axes, or a table)", "n")
     if not dists and not table:
-        raise ValueError(f"nothing varies, so all {n} samples would be the same run: add --vary NAME=DIST "
-                         "(or --from TABLE), or use `coopjax simulate` for one run")
-    columns = len(dists) + len(table) + len(METRICS) + 3
+        raise InputError(f"nothing varies, so all {n} samples would be the same run: vary a parameter "
+                         "(or give a table of sets), or simulate one run", "vary")
+    columns = len(dists) + len(table) + len(columns_per_sample(config)) + 1
     if n * columns * 8 > memory_limit():
-        raise ValueError(f"--n {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
+        raise InputError(f"n = {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
                          f"more than half of this machine's memory ({memory_limit() / 2**30:.3g} GiB); "
-                         f"at most {memory_limit() // (columns * 8):,} samples per sweep here")
-    from coopjax.params import make_params
+                         f"at most {memory_limit() // (columns * 8):,} samples per sweep here", "n")
+    base = make_params(**fixed)  # every fixed value checked now, before any file is written
+    spec = SweepSpec(config, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed),
+                     tuple((k, tuple(v)) for k, v in table.items()))
+    sample_values(spec)  # every drawn value checked now too
+    _check_dtype_range(spec, base)
+    return spec
 
-    make_params(**fixed)  # every --set value checked now, before any file is written
-    return SweepSpec(scenario, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed), switch,
-                     float(dt), T, bool(x64), tuple((k, tuple(v)) for k, v in table.items()), integrator)
+
+def _check_dtype_range(spec: SweepSpec, base) -> None:
+    """A value that float32 cannot hold would become inf inside the run: refuse it now."""
+    if spec.config.dtype != "float32":
+        return
+    big = float(np.finfo(np.float32).max)
+    for name, value in list(spec.fixed) + [(n, np.max(np.abs(v))) for n, v in sample_values(spec).items()]:
+        if abs(float(value)) > big:
+            raise InputError(f"{name} = {float(value):g} does not fit in float32 (at most {big:.3g}): "
+                             "use float64 (--x64)", name)
 
 
 def _significant(x: np.ndarray, digits: int) -> np.ndarray:
@@ -204,113 +251,53 @@ def _significant(x: np.ndarray, digits: int) -> np.ndarray:
         return np.where(np.isfinite(x) & (x != 0), np.round(x / scale) * scale, x)
 
 
-def memory_limit() -> int:
-    """Half of this machine's physical memory, in bytes: the most one table may take."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
-    except (ValueError, OSError, AttributeError):
-        return 8 * 2**30
-
-
 def block_size(n: int) -> int:
-    """Samples per device per call: a power of two up to 256, fixed by the sweep size alone.
-
-    256 measured fastest on this 2-core CPU (12.8 M steps/s against 10.6 M at 4096): the step's
-    intermediates stay in cache.
-    """
-    from coopjax.devices import BLOCK
-
-    return int(min(BLOCK, 2 ** math.ceil(math.log2(max(n, 8)))))
+    """Samples per device per call: a power of two up to `devices.BLOCK`, fixed by the sweep size
+    alone (so the compiled per-device program does not depend on the chunking)."""
+    return int(min(devices.BLOCK, 2 ** math.ceil(math.log2(max(n, 8)))))
 
 
-@functools.lru_cache(maxsize=16)
-def _metrics_fn(config, devices=None):
-    """One jitted metrics function per configuration (and device tuple), so repeated sweeps (tuning's
-    selection and judging call them many times) compile once, not once per call. Over several
-    devices each runs its own slice (`devices.per_device`)."""
-    import jax
-
-    from coopjax.devices import per_device
-    from coopjax.integration import integrate
-
-    fn = lambda p: integrate(p, config).metrics
-    return jax.jit(fn if devices is None or len(devices) == 1 else per_device(fn, list(devices)))
-
-
-class _Runner:
-    """Compiles once, then evaluates slabs of `devices x block` samples."""
-
-    def __init__(self, spec: SweepSpec, devices):
-        from coopjax.integration import SimConfig
-        from coopjax.model import Options
-
-        self.spec = spec
-        self.devices = list(devices)
-        self.block = block_size(spec.n)
-        self.config = SimConfig(spec.scenario, Options(switch=spec.switch), integrator=spec.integrator, dt=spec.dt,
-                                T=spec.T)
-        self.run = _metrics_fn(self.config, tuple(self.devices))
-
-    @property
-    def slab(self) -> int:
-        return len(self.devices) * self.block
-
-    def __call__(self, values: dict[str, np.ndarray]) -> np.ndarray:
-        import jax
-
-        from coopjax import stability
-        from coopjax.devices import place
-        from coopjax.params import make_params
-
-        m = len(next(iter(values.values())))
-        out = np.empty((m, len(COLUMNS_PER_SAMPLE)))
-        for start in range(0, m, self.slab):
-            stop = min(start + self.slab, m)
-            pad = self.slab - (stop - start)
-            slab = {k: np.concatenate([v[start:stop], np.repeat(v[stop - 1:stop], pad)]) for k, v in values.items()}
-            params = make_params(**dict(self.spec.fixed), **slab)
-            # The step check of `simulate`, per sample. Not overlapped with the run: compiling it while
-            # the devices compute made a small sweep 5x slower (thread contention, measured).
-            eig = stability.fastest_modes(params, self.config)
-            limit, growth = _significant(stability.max_stable_dt(eig), 6), stability.growing_mode(eig)
-            pending = self.run(place(params, self.devices))
-            metrics = np.stack([np.asarray(x, np.float64) for x in jax.device_get(pending)], axis=1)
-            finite = metrics[:, METRICS.index("finite")] > 0.5
-            # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of
-            # unknown cause (`t_diverged` says when any of them blew up).
-            status = np.select([growth > 0, self.spec.dt > limit, ~finite], [2, 3, 1], 0)
-            metrics[:, METRICS.index("finite")] = status == 0
-            out[start:stop] = np.column_stack([metrics, limit, status])[: stop - start]
-        return out
+def evaluate(spec: SweepSpec, values: dict[str, np.ndarray]) -> np.ndarray:
+    """The result columns (`spec.columns`, as float64) of the given parameter sets: the metrics, the
+    divergence flags, the step check of `simulate` per sample, and the status."""
+    config = spec.config
+    params = config.cast(make_params(**dict(spec.fixed), **values))
+    limit, growth = stability.stable_dt(params, config)
+    limit = _significant(limit, 6)
+    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block_size(spec.n))
+    m = np.stack([np.asarray(x, np.float64) for x in jax.device_get(list(metrics))], axis=1)
+    names = metrics._fields
+    finite = m[:, names.index("finite")] > 0.5
+    # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of unknown
+    # cause (`t_diverged` says when any of them blew up).
+    status = np.select([growth > 0, config.dt > limit, ~finite], [2, 3, 1], 0)
+    m[:, names.index("finite")] = status == 0
+    return np.column_stack([m, limit, status])
 
 
-def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False,
-        progress: bool = False, devices=None) -> dict[str, np.ndarray]:
-    """Run a sweep and return its table as columns (sample, varied parameters, metrics).
+def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False, progress: bool = False):
+    """Run a sweep and return its table as columns (sample, varied parameters, results).
 
     With `parts`, each finished chunk is saved there atomically, and `resume=True` skips those
     already saved. Under `jax.distributed`, chunks are shared among processes and process 0 returns
     the whole table (others return it too, except after a resume, when they return None).
     """
-    import jax
-
-    if chunk < 1:
-        raise ValueError(f"--chunk is {chunk}: it must be at least 1")
+    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise InputError(f"chunk is {chunk!r}: it must be a whole number, at least 1", "chunk")
     n_chunks = math.ceil(spec.n / chunk)
     n_proc, pid = jax.process_count(), jax.process_index()
-    runner = _Runner(spec, devices or jax.local_devices())
     values = sample_values(spec)  # drawn and checked once, before anything is written
+    width = len(spec.columns)
     done = np.zeros(n_chunks, bool)
     if parts is not None:
-        done = _prepare_parts(parts, spec, chunk, resume, n_chunks) if pid == 0 else done
+        done = prepare_parts(parts, spec, chunk, resume, n_chunks) if pid == 0 else done
         if n_proc > 1:
-            from jax.experimental import multihost_utils
-
             done = np.asarray(multihost_utils.broadcast_one_to_all(done))
     results: dict[int, np.ndarray] = {}
-    bar = Progress(spec.n, progress and pid == 0)
+    bar = tqdm(total=spec.n, unit="sample", desc="sweep", disable=not (progress and pid == 0), dynamic_ncols=True,
+               mininterval=0.5, file=sys.stderr)
     for k in np.flatnonzero(done) if pid == 0 else ():
-        saved = _load_part(parts, int(k), min((k + 1) * chunk, spec.n) - k * chunk)
+        saved = _load_part(parts, int(k), min((k + 1) * chunk, spec.n) - k * chunk, width)
         if saved is None:
             done[k] = False
             continue
@@ -321,30 +308,30 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
     for r in range(0, len(todo), n_proc):
         round_chunks = todo[r:r + n_proc]
         mine = round_chunks[pid] if pid < len(round_chunks) else None
-        local = np.full((chunk, len(COLUMNS_PER_SAMPLE)), np.nan)
+        local = np.full((chunk, width), np.nan)
         if mine is not None:
             rows = slice(mine * chunk, min((mine + 1) * chunk, spec.n))
-            local[: rows.stop - rows.start] = runner({k: v[rows] for k, v in values.items()})
+            local[: rows.stop - rows.start] = evaluate(spec, {k: v[rows] for k, v in values.items()})
         if n_proc > 1:
-            from jax.experimental import multihost_utils
-
-            gathered = np.asarray(multihost_utils.process_allgather(local, tiled=False))
+            with jax.enable_x64(True):  # the table is float64 whatever the runs are
+                gathered = np.asarray(multihost_utils.process_allgather(local, tiled=False), np.float64)
         else:
             gathered = local[None]
         for p, k in enumerate(round_chunks):
             size = min((k + 1) * chunk, spec.n) - k * chunk
             results[k] = gathered[p][:size]
             if parts is not None and pid == 0:
-                with atomic_path(_part_path(parts, k)) as tmp:
+                with atomic_path(part_path(parts, k)) as tmp:
                     with open(tmp, "wb") as f:
                         np.save(f, results[k])
             bar.update(size)
+    bar.close()
 
     if len(results) < n_chunks:  # a non-zero process on resume: only process 0 holds saved chunks
         return None
     metrics = np.concatenate([results[k] for k in range(n_chunks)])
     columns = {"sample": np.arange(spec.n), **values}
-    for j, name in enumerate(COLUMNS_PER_SAMPLE):
+    for j, name in enumerate(spec.columns):
         columns[name] = metrics[:, j]
     columns["finite"] = columns["finite"] > 0.5
     columns["status"] = np.asarray(STATUSES)[columns["status"].astype(int)]
@@ -352,10 +339,10 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
 
 
 def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
-    """Every sample's varied values (from --from, then --vary), checked against each parameter's
-    sign rule; a ValueError names the first offending sample. Cheap: one hash per value."""
-    sources = {name: f"--vary {name}={text}" for name, text in spec.vary}
-    sources.update({name: "--from" for name, _ in spec.table})
+    """Every sample's varied values (from the table, then the distributions), checked against each
+    parameter's sign rule; an InputError names the first offending sample. Cheap: one hash a value."""
+    sources = {name: f"vary {name}={text}" for name, text in spec.vary}
+    sources.update({name: "the table" for name, _ in spec.table})
     values = {k: np.asarray(v, np.float64) for k, v in spec.table}
     values.update(draw(spec.distributions(), np.arange(spec.n), spec.seed))
     for name, v in values.items():
@@ -367,42 +354,63 @@ def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
             bad |= v < 0
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise ValueError(
+            raise InputError(
                 f"{sources[name]} gives {name} = {v[i]:g} at sample {i}, but {name} must be "
                 f"{'finite' if rule == 'finite' else rule}: choose a distribution that stays in range "
-                "(e.g. loguniform)"
-            )
+                "(e.g. loguniform)", "vary" if sources[name].startswith("vary") else "table")
     return values
 
 
-def _load_part(parts: str, k: int, rows: int):
+def _load_part(parts: str, k: int, rows: int, width: int):
     """A saved chunk, or None (with a note) if it is unreadable or the wrong shape: it is recomputed."""
-    path = _part_path(parts, k)
+    path = part_path(parts, k)
     try:
         data = np.load(path)
-        if data.shape == (rows, len(COLUMNS_PER_SAMPLE)):
+        if data.shape == (rows, width):
             return data
     except (OSError, ValueError, EOFError):
         pass
-    import sys
-
     print(f"coopjax: note: {path} is unreadable or incomplete; it is computed again", file=sys.stderr)
     return None
 
 
-def _part_path(parts: str, k: int) -> str:
+def part_path(parts: str, k: int) -> str:
     return os.path.join(parts, f"chunk-{k:06d}.npy")
 
 
-def _prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunks: int) -> np.ndarray:
+def finished_parts(parts: str) -> int:
+    """How many finished chunks a parts folder holds."""
+    try:
+        return sum(1 for n in os.listdir(parts) if n.startswith("chunk-") and n.endswith(".npy"))
+    except OSError:
+        return 0
+
+
+def prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunks: int) -> np.ndarray:
+    """The parts folder of a sweep: created with its manifest, or checked against it on resume.
+    Returns which chunks are already finished."""
     manifest = os.path.join(parts, "manifest.json")
-    identity = json.dumps({"spec": json.loads(spec.to_json()), "chunk": chunk, "format": CHUNK_FORMAT}, sort_keys=True)
+    identity = json.dumps({"spec": json.loads(spec.to_json()), "chunk": chunk, "columns": list(spec.columns),
+                           "format": CHUNK_FORMAT}, sort_keys=True)
     if os.path.exists(manifest):
         if not resume:
-            raise ValueError(f"{parts} holds an unfinished sweep: add --resume to finish it, or delete it")
-        if open(manifest).read() != identity:
-            raise ValueError(f"--resume: {parts} belongs to a different sweep (other options or chunk size)")
-        return np.array([os.path.exists(_part_path(parts, k)) for k in range(n_chunks)])
+            raise InputError(f"{parts} holds an unfinished sweep: resume it (--resume), or delete it", "resume")
+        try:
+            if not os.access(manifest, os.R_OK):
+                raise PermissionError(13, "permission denied")
+            with open(manifest) as f:
+                saved = f.read()
+        except OSError as error:
+            raise InputError(f"{manifest} is not readable ({error.strerror}): fix its permissions or delete {parts}",
+                             "resume") from None
+        if saved != identity:
+            raise InputError(f"{parts} belongs to a different sweep (other options or chunk size): "
+                             "use the same options, or delete it", "resume")
+        if not os.access(parts, os.W_OK):
+            raise InputError(f"{parts} is not writable: fix its permissions or delete it", "resume")
+        return np.array([os.path.exists(part_path(parts, k)) for k in range(n_chunks)])
+    if os.path.exists(parts) and not os.path.isdir(parts):
+        raise InputError(f"{parts} exists and is not a folder: remove it", "out")
     os.makedirs(parts, exist_ok=True)
     with atomic_path(manifest) as tmp:
         with open(tmp, "w") as f:
@@ -410,62 +418,11 @@ def _prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chun
     return np.zeros(n_chunks, bool)
 
 
-def sweep(scenario="carry", n=None, vary=None, fixed=None, seed=0, switch="hard", dt=1e-3, T=None,
-          table=None, chunk=16384, progress=False, integrator=None):
-    """Notebook entry point: the sweep as a pandas DataFrame (or a dict of columns without pandas).
+def sweep(config: Config | str = "carry", n=None, vary=None, fixed=None, seed=0, table=None, chunk=16384,
+          progress=False, **settings):
+    """Notebook entry point: the sweep as a pandas DataFrame.
 
     Example: `sweep("carry", 1000, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.2:1"})`.
     """
-    import jax
-
-    spec = make_spec(scenario, n, vary, fixed, seed, switch, dt, T, jax.config.jax_enable_x64, table, integrator)
-    columns = run(spec, chunk=chunk, progress=progress)
-    try:
-        import pandas as pd
-    except ImportError:
-        return columns
-    return pd.DataFrame(columns)
-
-
-def is_parquet(path: str) -> bool:
-    return path.lower().endswith(".parquet")
-
-
-def write_table(path: str, columns: dict[str, np.ndarray]) -> None:
-    """CSV (full precision: Python's shortest round-trip repr) or Parquet (pandas + pyarrow), atomically."""
-    if is_parquet(path):
-        import pandas as pd
-
-        with atomic_path(path) as tmp:
-            pd.DataFrame(columns).to_parquet(tmp, index=False)
-        return
-    from coopjax.io import write_csv
-
-    write_csv(path, columns)
-
-
-def read_table(path: str, what: str = "table") -> dict[str, np.ndarray]:
-    """A sweep or parameter table; any problem with the file is one ValueError that names it."""
-    if os.path.isdir(path):
-        raise ValueError(f"{what} {path!r} is a folder, not a file")
-    if not os.path.exists(path):
-        raise ValueError(f"{what} {path!r}: no such file")
-    if os.path.getsize(path) == 0:
-        raise ValueError(f"{what} {path!r} is empty")
-    if is_parquet(path):
-        try:
-            import pandas as pd
-
-            frame = pd.read_parquet(path)
-        except ImportError:
-            raise ValueError("reading Parquet needs pandas and pyarrow: pip install 'coopjax[sweep]'") from None
-        except Exception as error:  # pyarrow raises several types for a damaged file
-            raise ValueError(f"{what} {path!r} is not a readable Parquet file ({type(error).__name__})") from None
-        columns = {c: frame[c].to_numpy() for c in frame.columns}
-    else:
-        from coopjax.io import read_csv
-
-        columns = read_csv(path, what)
-    if not columns or not len(next(iter(columns.values()))):
-        raise ValueError(f"{what} {path!r} has no rows")
-    return columns
+    spec = make_spec(config, n, vary, fixed, seed, table, **settings)
+    return pd.DataFrame(run(spec, chunk=chunk, progress=progress))

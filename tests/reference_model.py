@@ -1,4 +1,4 @@
-"""An independent NumPy transcription of MODEL.md sections 3-5 (smooth and blend modes), for solve_ivp.
+"""An independent NumPy transcription of the model and its scenarios (docs/model.md; smooth and blend modes), for solve_ivp.
 
 Written from the specification, not from coopjax's code: scalar per-robot loops, the e_c solve done
 as an explicit 3x3 linear system, its own command profiles.

@@ -13,7 +13,7 @@ import scipy.linalg
 
 import coopjax as cj
 from coopjax import analysis, model, stability
-from coopjax.integration import SimConfig, rk4
+from coopjax.integration import rk4
 
 TABLE1 = dict(mu_H=300.0, beta_H=300.0, K_c=500.0, K_f=10.0, M_c=10.0, R_c=5.0, M_f=1.0, R_f=200.0, M_r=1.0)
 ALPHAS = [1.0, 0.5, 0.1]
@@ -58,7 +58,7 @@ def field_jacobian(params, point):
     the hard switch (its derivative is 0 away from the surface) and bilateral contact."""
     p = jax.tree_util.tree_map(lambda x: x[..., None], params)
     if point == "limit":  # on F = F_lim from a pre-compression, just above it so the hard switch is on
-        p = dataclasses.replace(p, delta0=p.F_lim * (1 + 1e-12) / p.K_g)
+        p = p.with_leaves(delta0=p.F_lim * (1 + 1e-12) / p.K_g)
     options = model.Options(switch="hard", contact="bilateral")
     scenario = cj.SCENARIOS["paper"]
     f = lambda y: model.vector_field(p, y[:, None], 0.0, scenario, options)[0][:, 0]
@@ -68,7 +68,7 @@ def field_jacobian(params, point):
 @pytest.mark.parametrize("overrides", [{}, dict(K_GP=3.0, K_GI=0.7, G_e=200.0, M_b=4.0, K_c_R=800.0)])
 def test_poles_match_eigvals_and_the_dt_check(overrides):
     params = cj.make_params(**overrides)
-    config = SimConfig(scenario="paper")
+    config = cj.Config("paper")
     modes = stability.fastest_modes(params, config)[0]  # what `simulate`'s dt check uses, (2 points, 20)
     for k, point in enumerate(("rest", "limit")):
         poles = np.sort_complex(np.asarray(cj.linearize(params, point).poles()))

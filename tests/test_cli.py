@@ -24,35 +24,6 @@ def test_simulate_writes_csv_and_plot(fresh_dir, capsys):
     assert "wrote run.csv and fig.png" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["--scenario", "orbit"], "unknown scenario 'orbit'"),
-        (["--set", "K_XX=1"], "unknown parameter 'K_XX'"),
-        (["--set", "K_GP"], "expects NAME=VALUE"),
-        (["--set", "K_GP=abc"], "is not a number"),
-        (["--set", "M_b=nan"], "is not finite"),
-        (["--set", "M_b=inf"], "is not finite"),
-        (["--set", "M_b=-2"], "it must be positive"),
-        (["--set", "K_f=0"], "it must be positive"),
-        (["--dt", "0"], "dt is 0: it must be positive"),
-        (["--T", "-1"], "T is -1: it must be positive"),
-        (["--every", "0"], "at least 1"),
-        (["--dt", "0.02"], "too large for filippov"),
-        (["--dt", "abc"], "invalid float value"),
-        (["--out", "nowhere/run.csv"], "does not exist"),
-        (["--plot", "fig.bmp"], "must end in one of"),
-    ],
-)
-def test_bad_input_is_one_line_exit_2_and_no_file(fresh_dir, capsys, args, message):
-    code = cli.main(["simulate", "--out", "run.csv"] + args)
-    err = capsys.readouterr().err
-    assert code == 2
-    assert message in err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
-    assert os.listdir(fresh_dir) == []
-
-
 def test_real_process_exit_code_and_no_traceback(fresh_dir):
     run = subprocess.run([sys.executable, "-m", "coopjax.cli", "simulate", "--set", "M_b=-1"],
                          capture_output=True, text=True)

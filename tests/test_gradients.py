@@ -1,6 +1,6 @@
 """Gradients of the hard model against central finite differences, in both AD modes.
 
-Under the sliding-mode integrator the hard model has exact gradients (SLIDING.md, "Evidence"). The
+Under the sliding-mode integrator the hard model has exact gradients (docs/model.md, "Derivatives"). The
 tuner's constrained objective, built on these, is checked the same way in test_tuning.py.
 """
 
@@ -77,12 +77,11 @@ def test_plain_rk4_finite_differences_of_the_hard_model_are_noise():
 
 @pytest.mark.slow
 def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
-    from coopjax.integration import SimConfig, integrate
-    from coopjax.model import Options
+    from coopjax.simulation import Run
 
     def compiled(checkpoint, T):
-        config = SimConfig("carry", Options(switch="smooth"), dt=1e-3, T=T, checkpoint=checkpoint)
-        f = lambda k: cj.loss(integrate(cj.make_params(K_GP=k, M_b=jnp.ones(2)), config).metrics).mean()
+        run = Run(cj.Config("carry", switch="smooth", dt=1e-3, T=T), checkpoint=checkpoint)
+        f = lambda k: cj.loss(run(cj.make_params(K_GP=k, M_b=jnp.ones(2))).metrics).mean()
         return jax.jit(jax.grad(f)).lower(0.5).compile()
 
     programs = {(c, T): compiled(c, T) for c in (True, "nested") for T in (0.5, 2.0)}

@@ -62,4 +62,5 @@ def test_a_diverging_sample_is_flagged_and_leaves_its_neighbours_alone(integrato
     for b in (0, 2):
         single = cj.simulate(cj.make_params(K_GP=K_GP[b]), scenario, integrator=integrator)
         for name in ("min_grip", "peak_grip", "slip", "crush", "rms_lag"):
-            assert float(getattr(batch.metrics, name)[b]) == pytest.approx(float(getattr(single.metrics, name)), rel=1e-12)
+            assert float(getattr(batch.metrics, name)[b]) == pytest.approx(float(getattr(single.metrics, name)), rel=1e-12,
+                                                                            nan_ok=True)

@@ -33,7 +33,7 @@ CASES = [
     ("sweep-out-extension", {}, ["sweep", *SMALL, *VARY, "--out", "s.txt"], {}, "must end in one of"),
     ("simulate-out-folder", {"run.csv": None}, ["simulate", "--out", "run.csv"], {}, "is a folder"),
     ("simulate-plot-folder", {"f.png": None}, ["simulate", "--plot", "f.png"], {}, "is a folder"),
-    ("simulate-plot-empty", {}, ["simulate", "--plot", ""], {}, "must end in one of"),
+    ("simulate-plot-empty", {}, ["simulate", "--plot", ""], {}, "give a file name"),
     ("simulate-plot-extension", {}, ["simulate", "--plot", "f.txt"], {}, "must end in one of"),
     ("plot-sweep-out-folder", {"t.csv": SWEEP_TABLE, "p.png": None}, ["plot-sweep", "t.csv", "--out", "p.png"], {},
      "is a folder"),
@@ -86,11 +86,87 @@ CASES = [
                                     "--process-id", "2"], {}, "between 0 and"),
     ("tune-devices-zero", {}, ["tune", "--devices", "0"], {}, "--devices is 0"),
     ("tune-steps-zero", {}, ["tune", "--steps", "0"], {}, "at least 1"),
-    ("tune-repeated-set", {}, ["tune", "--set", "G_e=1", "--set", "G_e=2"], {}, "names a parameter twice"),
+    ("tune-repeated-set", {}, ["tune", "--set", "G_e=1", "--set", "G_e=2"], {}, "given more than once"),
     ("analyze-alpha", {}, ["analyze", "--alpha", "1,x"], {}, "comma-separated numbers"),
     ("analyze-robot", {}, ["analyze", "--robot", "Q"], {}, "invalid choice"),
     ("unknown-command", {}, ["orbit"], {}, "invalid choice"),
+    # simulate
+    ("simulate-scenario", {}, ["simulate", "--scenario", "orbit"], {}, "unknown scenario 'orbit'"),
+    ("simulate-set-unknown", {}, ["simulate", "--set", "K_XX=1"], {}, "unknown parameter 'K_XX'"),
+    ("simulate-set-form", {}, ["simulate", "--set", "K_GP"], {}, "expects NAME=VALUE"),
+    ("simulate-set-text", {}, ["simulate", "--set", "K_GP=abc"], {}, "is not a number"),
+    ("simulate-set-nan", {}, ["simulate", "--set", "M_b=nan"], {}, "is not finite"),
+    ("simulate-set-inf", {}, ["simulate", "--set", "M_b=inf"], {}, "is not finite"),
+    ("simulate-negative-mass", {}, ["simulate", "--set", "M_b=-2"], {}, "it must be positive"),
+    ("simulate-zero-stiffness", {}, ["simulate", "--set", "K_f=0"], {}, "it must be positive"),
+    ("simulate-dt-zero", {}, ["simulate", "--dt", "0"], {}, "--dt is 0 s: it must be positive"),
+    ("simulate-T-negative", {}, ["simulate", "--T", "-1"], {}, "--T is -1 s: it must be positive"),
+    ("simulate-every-zero", {}, ["simulate", "--every", "0"], {}, "at least 1"),
+    ("simulate-dt-text", {}, ["simulate", "--dt", "abc"], {}, "invalid float value"),
+    ("simulate-out-nowhere", {}, ["simulate", "--out", "nowhere/run.csv"], {}, "does not exist"),
+    ("simulate-switch", {}, ["simulate", "--switch", "soft"], {}, "unknown switch 'soft'"),
+    ("simulate-integrator", {}, ["simulate", "--integrator", "euler"], {}, "unknown integrator 'euler'"),
+    ("simulate-smooth-filippov", {}, ["simulate", "--switch", "smooth", "--integrator", "filippov"], {},
+     "the smooth switch runs with rk4"),
+    ("simulate-gamma-min", {}, ["simulate", "--gamma-min", "nan"], {}, "--gamma-min is nan"),
+    ("simulate-force-bound", {}, ["simulate", "--force-bound", "0"], {}, "--force-bound is 0 N"),
+    ("simulate-plot-memory", {}, ["simulate", "--T", "1e6", "--dt", "1e-3", "--plot", "f.png"], {}, "drop --plot"),
+    # sweep: the distributions and the table
+    ("vary-arity", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b=uniform:1"], {}, "expected uniform:a:b"),
+    ("vary-kind", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b=gauss:1:2"], {}, "unknown distribution 'gauss'"),
+    ("vary-sign", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b=uniform:-1:2"], {}, "M_b must be positive"),
+    ("vary-log-zero", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b=loguniform:0:2"], {}, "positive lower bound"),
+    ("vary-bounds", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b=uniform:3:2"], {}, "upper bound is below"),
+    ("vary-grid-size", {}, ["sweep", *SMALL, "--vary", "K_GP=grid:0:1:2.5"], {}, "whole number"),
+    ("vary-unknown", {}, ["sweep", *SMALL, "--n", "4", "--vary", "K_XX=uniform:0:1"], {}, "unknown parameter 'K_XX'"),
+    ("vary-form", {}, ["sweep", *SMALL, "--n", "4", "--vary", "M_b"], {}, "expects NAME=DIST"),
+    ("vary-and-set", {}, ["sweep", *SMALL, *VARY, "--set", "M_b=3"], {}, "given twice"),
+    ("vary-no-n", {}, ["sweep", *SMALL, "--vary", "K_GP=uniform:1:2"], {}, "say how many samples"),
+    ("vary-grid-n", {}, ["sweep", *SMALL, "--vary", "K_GP=grid:1:2:3", "--n", "5"], {}, "disagrees"),
+    ("sweep-chunk-zero", {}, ["sweep", *SMALL, *VARY, "--chunk", "0"], {}, "at least 1"),
+    ("vary-normal-negative", {}, ["sweep", *SMALL, "--vary", "M_b=normal:1:2", "--n", "50"], {},
+     "--vary M_b=normal:1:2 gives M_b = -"),
+    ("sweep-float32-overflow", {}, ["sweep", *SMALL, *VARY, "--set", "K_g=1e40"], {}, "does not fit in float32"),
+    ("sweep-scenario", {}, ["sweep", "--scenario", "orbit", *VARY], {}, "unknown scenario 'orbit'"),
+    ("from-unreadable", {"t.csv": "M_b\n1\n"}, ["sweep", *SMALL, "--from", "t.csv"], {"chmod": "t.csv"}, "not readable"),
+    ("plot-sweep-unreadable", {"t.csv": SWEEP_TABLE}, ["plot-sweep", "t.csv"], {"chmod": "t.csv"}, "not readable"),
+    ("sweep-parts-unreadable", {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
+     ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"], {"chmod": "s.csv.parts/manifest.json"}, "not readable"),
+    # tune
+    ("tune-mode", {}, ["tune", "--mode", "sideways"], {}, "--mode must be one of auto, forward, reverse"),
+    ("tune-masses-kind", {}, ["tune", "--masses", "normal:1:2"], {}, "--masses expects"),
+    ("tune-masses-order", {}, ["tune", "--masses", "loguniform:5:0.5"], {}, "0 < LOW < HIGH"),
+    ("tune-params-unknown", {}, ["tune", "--params", "K_XX"], {}, "unknown parameter 'K_XX'"),
+    ("tune-params-mass", {}, ["tune", "--params", "M_b"], {}, "not a controller parameter"),
+    ("tune-params-force-limit", {}, ["tune", "--params", "F_lim"], {}, "--params: F_lim is not a controller parameter"),
+    ("tune-params-plant", {}, ["tune", "--params", "K_g,M_v"], {}, "not a controller parameter"),
+    ("tune-params-twice", {}, ["tune", "--params", "K_GP,K_GP"], {}, "named twice"),
+    ("tune-params-both", {}, ["tune", "--params", "K_GP,K_GP_L"], {}, "both named"),
+    ("tune-starts-zero", {}, ["tune", "--starts", "0"], {}, "--starts is 0"),
+    ("tune-train-masses", {}, ["tune", "--train-masses", "1"], {}, "--train-masses is 1"),
+    ("tune-switch", {}, ["tune", "--switch", "soft"], {}, "--switch must be one of"),
+    ("tune-aggregate", {}, ["tune", "--aggregate", "median"], {}, "--aggregate must be one of"),
+    ("tune-lr", {}, ["tune", "--lr", "-1"], {}, "--lr is -1"),
+    ("tune-w-lag", {}, ["tune", "--w-lag", "-1"], {}, "--w-lag is -1"),
+    ("tune-set-tuned", {}, ["tune", "--set", "K_GP=0.2"], {}, "both tuned (--params) and fixed"),
+    ("tune-set-mass", {}, ["tune", "--set", "M_b=2"], {}, "the body mass is what the tuner varies"),
+    ("tune-held-out", {}, ["tune", "--held-out", "1"], {}, "at least 2 masses"),
+    ("tune-lag-weights", {}, ["tune", "--pareto", "--lag-weights", "a,b"], {}, "not a comma-separated list"),
+    ("tune-seeds-twice", {}, ["tune", "--compare", "--seeds", "1,1"], {}, "names a value twice"),
+    ("tune-compare-pareto", {}, ["tune", "--compare", "--pareto"], {}, "choose one"),
+    ("tune-resume-nothing", {}, ["tune", "--resume"], {}, "no tuned.json.ckpt to continue"),
+    ("tune-judge-dt-zero", {}, ["tune", "--judge-dt", "0"], {}, "--judge-dt is 0"),
+    ("tune-judge-dt-unstable", {}, ["tune", "--judge-dt", "0.05"], {}, "too large for filippov"),
+    ("tune-judge-dt-horizon", {}, ["tune", "--judge-dt", "10"], {}, "longer than the horizon"),
+    ("tune-dt-unstable", {}, ["tune", "--dt", "0.05"], {}, "too large"),
+    ("tune-seed-negative", {}, ["tune", "--seed", "-1"], {}, "--seed is -1"),
+    ("tune-stale-checkpoint", {"tuned.json.ckpt": "x"}, ["tune"], {}, "holds an interrupted run"),
+    # analyze
+    ("analyze-alpha-range", {}, ["analyze", "--alpha", "0.5,-1"], {}, "between 0 and 1"),
+    ("analyze-out-empty", {}, ["analyze", "--out", ""], {}, "give a file name"),
+    ("analyze-repeated-set", {}, ["analyze", "--set", "K_GP=1", "--set", "K_GP=2"], {}, "given more than once"),
 ]
+
 
 
 def snapshot(folder):
@@ -102,13 +178,24 @@ def snapshot(folder):
     return out
 
 
+def deny(monkeypatch, path):
+    """Make `path` unreadable and unwritable, also for root (whom permissions do not stop)."""
+    os.chmod(path, 0)
+    if os.geteuid() == 0:
+        real, target = os.access, os.path.abspath(path)
+        monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if os.path.abspath(p) == target else real(p, mode, **kw))
+
+
 @pytest.mark.parametrize("setup, argv, env, fragment", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
 def test_a_mistake_is_one_line_exit_2_and_leaves_the_folder_as_it_was(fresh_dir, capsys, monkeypatch, setup, argv,
                                                                        env, fragment):
     for name, text in setup.items():
         os.mkdir(name) if text is None else open(name, "w").write(text)
     for key, value in env.items():
-        monkeypatch.setenv(key, value)
+        if key == "chmod":
+            deny(monkeypatch, value)
+        else:
+            monkeypatch.setenv(key, value)
     before = snapshot(fresh_dir)
     code = cli.main(argv)
     err = capsys.readouterr().err
@@ -123,13 +210,53 @@ def test_the_table_covers_every_command():
     assert {"simulate", "sweep", "plot-sweep", "tune", "analyze"} <= commands and len(CASES) >= 50
 
 
-def test_the_python_api_raises_the_same_value_errors():
-    with pytest.raises(ValueError, match="nothing varies"):
-        cj.sweep("paper", 8, T=0.05)
-    with pytest.raises(ValueError, match="make the loop unstable"):
-        cj.simulate(cj.make_params(K_GP=-5.0), "paper")
-    with pytest.raises(ValueError, match="32-bit step counter"):
-        cj.simulate(cj.make_params(), "paper", T=1e7, dt=1e-6)
+# The Python API: the same mistakes raise coopjax.InputError (a ValueError), in API terms.
+API_CASES = [
+    ("unknown-name", lambda: cj.make_params(K_XX=1.0), "unknown parameter 'K_XX'"),
+    ("close-name", lambda: cj.make_params(K_GPP=1.0), "did you mean 'K_GP'"),
+    ("nan", lambda: cj.make_params(M_b=float("nan")), "must be finite"),
+    ("negative-mass", lambda: cj.make_params(M_v_L=-1.0), "M_v_L is -1 kg: it must be positive"),
+    ("zero-stiffness", lambda: cj.make_params(K_g=0.0), "K_g_L is 0 N/m: it must be positive"),
+    ("shared-per-robot", lambda: cj.make_params(M_b_L=1.0), "M_b is shared by both robots; set M_b, not M_b_L"),
+    ("text-value", lambda: cj.make_params(K_GP="abc"), "K_GP: expected a number"),
+    ("none-value", lambda: cj.make_params(K_GP=None), "K_GP: expected a number"),
+    ("empty-batch", lambda: cj.make_params(M_b=np.array([])), "an empty batch"),
+    ("matrix-value", lambda: cj.make_params(M_b=np.ones((2, 2))), "expected a scalar or a 1-D batch"),
+    ("batch-mismatch", lambda: cj.make_params(M_b=np.ones(3), K_GP=np.ones(2)), "does not match the batch"),
+    ("base-type", lambda: cj.make_params({"K_GP": 1.0}), "base must be a Params"),
+    ("params-type", lambda: cj.simulate({"K_GP": 1.0}), "params must be a Params"),
+    ("scenario", lambda: cj.simulate(cj.make_params(), "orbit"), "unknown scenario 'orbit'"),
+    ("scenario-type", lambda: cj.simulate(cj.make_params(), 3), "expected a Config or a scenario name"),
+    ("setting", lambda: cj.simulate(cj.make_params(), swich="hard"), "unknown setting 'swich'"),
+    ("dt-zero", lambda: cj.simulate(cj.make_params(), dt=0.0), "dt is 0 s: it must be positive"),
+    ("dt-negative", lambda: cj.simulate(cj.make_params(), dt=-1e-3), "dt is -0.001 s: it must be positive"),
+    ("dt-text", lambda: cj.simulate(cj.make_params(), dt="fast"), "dt must be a number"),
+    ("T-negative", lambda: cj.simulate(cj.make_params(), T=-1.0), "T is -1 s: it must be positive"),
+    ("every-zero", lambda: cj.simulate(cj.make_params(), every=0), "at least 1"),
+    ("every-float", lambda: cj.simulate(cj.make_params(), every=2.5), "a whole number of steps"),
+    ("switch", lambda: cj.simulate(cj.make_params(), switch="soft"), "unknown switch 'soft'"),
+    ("switch-type", lambda: cj.simulate(cj.make_params(), switch=1), "switch must be a name"),
+    ("dtype", lambda: cj.simulate(cj.make_params(), dtype="int8"), "choose float32 or float64"),
+    ("checkpoint", lambda: cj.simulate(cj.make_params(), checkpoint="yes"), "checkpoint is 'yes'"),
+    ("step-too-large", lambda: cj.simulate(cj.make_params(), dt=0.01), "too large for filippov"),
+    ("step-beyond-limit", lambda: cj.simulate(cj.make_params(K_GP=100.0), dt=1e-3), "stable only for dt <="),
+    ("unstable", lambda: cj.simulate(cj.make_params(K_GP=-5.0), "paper"), "make the loop unstable"),
+    ("steps", lambda: cj.simulate(cj.make_params(), "paper", T=1e7, dt=1e-6), "32-bit step counter"),
+    ("state-name", lambda: cj.simulate(cj.make_params(), "paper", T=0.01, every=1).trajectory.state("x_q"),
+     "unknown state 'x_q'"),
+    ("sweep-nothing-varies", lambda: cj.sweep("paper", 8, T=0.05), "nothing varies"),
+    ("sweep-vary-type", lambda: cj.sweep("paper", 8, vary={"M_b": 2.0}), "expected a distribution"),
+    ("sweep-vary-dict", lambda: cj.sweep("paper", 8, vary=["M_b"]), "vary must be a dict"),
+    ("sweep-seed", lambda: cj.sweep("paper", 8, vary={"M_b": "uniform:1:2"}, seed=-1), "seed is -1"),
+    ("use-all-cores", lambda: cj.use_all_cores(0), "at least one device"),
+]
+
+
+@pytest.mark.parametrize("call, fragment", [c[1:] for c in API_CASES], ids=[c[0] for c in API_CASES])
+def test_the_python_api_raises_input_error_in_api_terms(call, fragment):
+    with pytest.raises(cj.InputError) as info:
+        call()
+    assert fragment in str(info.value) and "--" not in str(info.value), str(info.value)
 
 
 def test_a_stale_temporary_file_from_a_killed_write_is_gone_after_the_next_success(fresh_dir):
@@ -138,7 +265,7 @@ def test_a_stale_temporary_file_from_a_killed_write_is_gone_after_the_next_succe
     stale.write_text("half a table")
     other = fresh_dir / ".other.csv.tmp-zz.csv"  # another target's file is not ours to remove
     other.write_text("x")
-    io.write_csv("s.csv", {"a": np.arange(3.0)})
+    io.write_table("s.csv", {"a": np.arange(3.0)})
     assert not stale.exists() and other.exists()
     # A write that fails leaves nothing, and the old file stays whole.
     with pytest.raises(RuntimeError):
@@ -146,18 +273,17 @@ def test_a_stale_temporary_file_from_a_killed_write_is_gone_after_the_next_succe
             open(tmp, "w").write("partial")
             raise RuntimeError
     assert sorted(os.listdir(fresh_dir)) == [".other.csv.tmp-zz.csv", "s.csv"]
-    assert io.read_csv("s.csv")["a"].tolist() == [0.0, 1.0, 2.0]
+    assert io.read_table("s.csv")["a"].tolist() == [0.0, 1.0, 2.0]
 
 
 def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_path):
     """A real kill -9 while the table is being written (a hook sleeps inside the write), then --resume."""
     args = [sys.executable, "-c",
-            "import time, coopjax.io as io, sys; real = io.write_csv\n"
+            "import time, coopjax.io as io, sys\n"
             "def slow(path, columns):\n"
             "    with io.atomic_path(path) as tmp:\n"
             "        open(tmp, 'w').write('partial'); print('writing', flush=True); time.sleep(60)\n"
-            "io.write_csv = slow\n"
-            "import coopjax.sweeps as s; s.write_csv = slow\n"
+            "import coopjax.cli.sweep as s; s.write_table = slow\n"
             "from coopjax.cli import main; sys.exit(main(sys.argv[1:]))",
             "sweep", *SMALL, *VARY, "--chunk", "2", "--out", "s.csv"]
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -173,24 +299,6 @@ def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_
     assert sorted(os.listdir(tmp_path)) == ["s.csv"]
 
 
-def test_ctrl_c_is_one_line_that_says_how_to_resume(tmp_path):
-    # The carry scenario's 4 s on 256 samples per chunk: about half a second per chunk, 32 chunks.
-    # pytest-xdist's workers ignore SIGINT and a child inherits that, so the child restores Python's handler.
-    args = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            "from coopjax.cli import main; sys.exit(main(sys.argv[1:]))",
-            "sweep", "--devices", "1", "--vary", "M_b=uniform:1:2", "--n", "256", "--chunk", "8", "--out", "s.csv"]
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    parts = tmp_path / "s.csv.parts"
-    deadline = time.time() + 120
-    while time.time() < deadline and not any(p.name.startswith("chunk-") for p in parts.glob("*")):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130
-    lines = [ln for ln in err.splitlines() if ln.strip() and "sweep [" not in ln]
-    assert len(lines) == 1 and "--resume" in lines[0] and "Traceback" not in err, err
-
-
 def test_csv_and_parquet_of_one_sweep_are_equal(fresh_dir):
     pd = pytest.importorskip("pandas")
     pytest.importorskip("pyarrow")
@@ -198,10 +306,10 @@ def test_csv_and_parquet_of_one_sweep_are_equal(fresh_dir):
                             integrator="rk4", dt=2e-3)
     table = sweeps.run(spec, chunk=6)
     assert len(set(table["status"])) >= 2  # strings and numbers both round-trip
-    sweeps.write_table("s.csv", table)
-    sweeps.write_table("s.PARQUET", table)  # the extension in any case
+    io.write_table("s.csv", table)
+    io.write_table("s.PARQUET", table)  # the extension in any case
     assert open("s.PARQUET", "rb").read(4) == b"PAR1"
-    csv, parquet = sweeps.read_table("s.csv"), sweeps.read_table("s.PARQUET")
+    csv, parquet = io.read_table("s.csv"), io.read_table("s.PARQUET")
     assert list(csv) == list(parquet) == list(table)
     for name in table:
         if table[name].dtype.kind in "fb":

@@ -57,7 +57,7 @@ def test_rk4_converges_with_order_four():
 
 
 def test_blend_surrogate_tracks_the_hard_sliding_motion_where_smooth_substitution_does_not():
-    """MODEL.md section 4's sigmoid substitution does not converge to the hard model on F = F_lim.
+    """The sigmoid substitution of the smooth surrogates does not converge to the hard model on F = F_lim.
 
     On the sliding surface the hard switch's chatter averages the switch-off and switch-on fields
     (Filippov); substituting a fractional w into a field that is nonlinear in w gives another motion.

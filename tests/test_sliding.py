@@ -1,4 +1,4 @@
-"""The sliding-mode integrator (SLIDING.md) against the dt -> 0 limit of the hard model (MODEL.md section 8).
+"""The sliding-mode integrator against the dt -> 0 limit of the hard model (docs/model.md, "Step size").
 
 The limit is computed two independent ways: `filippov` at dt = 1e-4, and plain `rk4` at dt = 1e-6
 (slow). benchmarks/convergence.json has the evidence that 1e-4 is the limit for this purpose: on 16
@@ -35,7 +35,7 @@ def metrics(samples, **kwargs):
 
 
 def misses(got, limit):
-    """Per sample: which MODEL.md tolerance each metric misses (empty where all are met)."""
+    """Per sample: which accuracy tolerance each metric misses (empty where all are met)."""
     error = {
         "min_grip": np.abs(got["min_grip"] - limit["min_grip"]),
         "peak_grip": np.abs(got["peak_grip"] / limit["peak_grip"] - 1),
@@ -91,7 +91,7 @@ def test_during_sliding_the_force_stays_on_the_limit_to_round_off():
 
 
 def test_paper_scenario_is_unchanged():
-    """Fig. 6 does not slide: filippov at 1e-3 gives plain RK4's forces at 1e-4 (SLIDING.md's numbers)."""
+    """Fig. 6 does not slide: filippov at 1e-3 gives plain RK4's forces at 1e-4 (the reference values of docs/model.md)."""
     times = (0.5, 1.0, 2.0, 3.0)
 
     def forces(**kwargs):
@@ -111,7 +111,7 @@ def test_filippov_is_the_default_for_the_hard_switch_and_refuses_smooth_ones():
     default = cj.simulate(p, "carry", T=0.8).metrics
     explicit = cj.simulate(p, "carry", T=0.8, integrator="filippov").metrics
     assert float(default.min_grip) == float(explicit.min_grip)
-    with pytest.raises(ValueError, match="the smooth switch runs with rk4"):
+    with pytest.raises(cj.InputError, match="the smooth switch runs with rk4"):
         cj.simulate(p, "carry", switch="smooth", integrator="filippov")
     with pytest.raises(ValueError, match="unknown integrator 'euler'"):
         cj.simulate(p, "carry", integrator="euler")
@@ -140,12 +140,10 @@ def test_a_blown_up_sample_is_flagged_frozen_and_its_neighbours_untouched():
 def test_the_step_check_covers_the_sliding_mode_step():
     """The step evaluates the w = 0 and w = 1 fields with RK4 stages over at most dt: the check's
     limit is RK4's for the fastest of their linearised modes, and it refuses filippov beyond it."""
-    from coopjax.integration import SimConfig
-    from coopjax.model import Options
     from coopjax.stability import fastest_modes, max_stable_dt, rk4_amplification
 
     p = cj.make_params(K_GP=5.0)
-    modes = fastest_modes(p, SimConfig("carry", Options(), integrator="filippov"))
+    modes = fastest_modes(p, cj.Config("carry", integrator="filippov"))
     limit = float(max_stable_dt(modes)[0])
     assert 1e-4 < limit < 1e-3
     assert rk4_amplification(modes * limit).max() == pytest.approx(1.0, abs=1e-6)

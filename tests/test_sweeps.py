@@ -11,23 +11,28 @@ import numpy as np
 import pytest
 
 import coopjax as cj
-from coopjax import cli, sweeps
+from coopjax import cli, io, sweeps
 
 # A small, well-conditioned sweep (the paper scenario is step-converged at dt = 1e-3).
 BASE = ["sweep", "--scenario", "paper", "--T", "1.0", "--vary", "M_b=loguniform:0.5:5",
         "--vary", "K_GP=uniform:0.3:0.9", "--set", "G_e=500", "--quiet"]
 
 
-def sweep_cli(*extra, cwd, devices=1, env=None, background=False):
+def sweep_cli(*extra, cwd, devices=1, env=None, background=False, default_xla=False):
+    """The sweep command in a process of its own; `default_xla` drops the suite's XLA flags (conftest.py),
+    so that it compiles as a user's run does."""
     cmd = [sys.executable, "-m", "coopjax.cli"] + BASE + ["--devices", str(devices)] + list(extra)
-    kwargs = dict(cwd=cwd, env={**os.environ, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    environment = {**os.environ, **(env or {})}
+    if default_xla:
+        environment.pop("XLA_FLAGS", None)
+    kwargs = dict(cwd=cwd, env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if background:
         return subprocess.Popen(cmd, **kwargs)
     return subprocess.run(cmd, **kwargs, timeout=300)
 
 
 def read(path):
-    return sweeps.read_table(str(path))
+    return io.read_table(str(path))
 
 
 def assert_same_table(a, b):
@@ -68,18 +73,21 @@ def test_same_seed_same_table_whatever_the_chunk_size():
     assert_same_table(sweeps.run(spec, chunk=7), sweeps.run(spec, chunk=30))
 
 
-def test_one_and_two_devices_give_the_identical_table(tmp_path):
+def test_one_and_two_devices_give_the_identical_table_under_xla_defaults(tmp_path):
+    """Also the suite's run of the default compile path (the other tests use faster-compiling flags).
+    Every device runs the same block of samples; the one-device program is compiled unpartitioned,
+    and XLA's defaults round it as the partitioned one (under the suite's flags, only to round-off)."""
     for d in (1, 2):
-        run = sweep_cli("--n", "40", "--chunk", "16", "--out", f"d{d}.csv", cwd=tmp_path, devices=d)
+        run = sweep_cli("--n", "24", "--chunk", "16", "--out", f"d{d}.csv", cwd=tmp_path, devices=d, default_xla=True)
         assert run.returncode == 0, run.stderr
         assert f"on {d} device(s)" in run.stdout
     assert_same_table(read(tmp_path / "d1.csv"), read(tmp_path / "d2.csv"))
 
 
 def test_resume_after_kill_9_gives_the_uninterrupted_table(tmp_path):
-    whole = sweep_cli("--n", "64", "--chunk", "2", "--out", "whole.csv", cwd=tmp_path)
+    whole = sweep_cli("--n", "24", "--chunk", "2", "--out", "whole.csv", cwd=tmp_path)
     assert whole.returncode == 0, whole.stderr
-    proc = sweep_cli("--n", "64", "--chunk", "2", "--out", "cut.csv", cwd=tmp_path, background=True)
+    proc = sweep_cli("--n", "24", "--chunk", "2", "--out", "cut.csv", cwd=tmp_path, background=True)
     parts = tmp_path / "cut.csv.parts"
     deadline = time.time() + 120
     while time.time() < deadline and len(list(parts.glob("chunk-*.npy"))) < 3:
@@ -87,23 +95,23 @@ def test_resume_after_kill_9_gives_the_uninterrupted_table(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     saved = len(list(parts.glob("chunk-*.npy")))
-    assert 3 <= saved < 32 and not (tmp_path / "cut.csv").exists()
-    again = sweep_cli("--n", "64", "--chunk", "2", "--out", "cut.csv", cwd=tmp_path)
+    assert 3 <= saved < 12 and not (tmp_path / "cut.csv").exists()
+    again = sweep_cli("--n", "24", "--chunk", "2", "--out", "cut.csv", cwd=tmp_path)
     assert again.returncode == 2 and "--resume" in again.stderr  # never silently restarts
-    resumed = sweep_cli("--n", "64", "--chunk", "2", "--out", "cut.csv", "--resume", cwd=tmp_path)
+    resumed = sweep_cli("--n", "24", "--chunk", "2", "--out", "cut.csv", "--resume", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr
     assert_same_table(read(tmp_path / "whole.csv"), read(tmp_path / "cut.csv"))
     assert not parts.exists()
 
 
 def test_two_processes_under_jax_distributed_give_the_single_process_table(tmp_path):
-    single = sweep_cli("--n", "50", "--chunk", "8", "--out", "single.csv", cwd=tmp_path)
+    single = sweep_cli("--n", "24", "--chunk", "8", "--out", "single.csv", cwd=tmp_path)
     assert single.returncode == 0, single.stderr
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     procs = [
-        sweep_cli("--n", "50", "--chunk", "8", "--out", "multi.csv", "--coordinator", f"127.0.0.1:{port}",
+        sweep_cli("--n", "24", "--chunk", "8", "--out", "multi.csv", "--coordinator", f"127.0.0.1:{port}",
                   "--num-processes", "2", "--process-id", str(i), cwd=tmp_path, background=True)
         for i in range(2)
     ]
@@ -125,33 +133,6 @@ def test_a_diverging_sample_is_flagged_and_the_others_are_right():
     np.testing.assert_allclose(table["peak_grip"][~bad], float(single.peak_grip), rtol=1e-9)
 
 
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["--vary", "M_b=uniform:1"], "expected uniform:a:b"),
-        (["--vary", "M_b=gauss:1:2"], "unknown distribution 'gauss'"),
-        (["--vary", "M_b=uniform:-1:2"], "M_b must be positive"),
-        (["--vary", "M_b=loguniform:0:2"], "positive lower bound"),
-        (["--vary", "M_b=uniform:3:2"], "upper bound is below"),
-        (["--vary", "K_GP=grid:0:1:2.5"], "whole number"),
-        (["--vary", "K_XX=uniform:0:1"], "unknown parameter 'K_XX'"),
-        (["--vary", "M_b"], "expects NAME=DIST"),
-        (["--vary", "M_b=uniform:1:2", "--set", "M_b=3"], "given twice"),
-        (["--set", "M_b=x", "--vary", "K_GP=uniform:1:2"], "is not a number"),
-        (["--vary", "K_GP=uniform:1:2"], "--n N"),
-        (["--vary", "K_GP=grid:1:2:3", "--n", "5"], "disagrees"),
-        (["--vary", "K_GP=uniform:1:2", "--n", "5", "--chunk", "0"], "at least 1"),
-        (["--vary", "M_b=normal:1:2", "--n", "50"], "--vary M_b=normal:1:2 gives M_b = -"),
-    ],
-)
-def test_bad_vary_and_set_are_one_line_and_exit_2(fresh_dir, capsys, args, message):
-    code = cli.main(["sweep", "--scenario", "paper", "--devices", "1", "--out", "s.csv"] + args)
-    err = capsys.readouterr().err
-    assert code == 2 and message in err, err
-    assert len(err.strip().splitlines()) == 1
-    assert os.listdir(fresh_dir) == []
-
-
 def test_parquet_output_and_from_table_round_trip(fresh_dir):
     pd = pytest.importorskip("pandas")
     pytest.importorskip("pyarrow")
@@ -163,7 +144,7 @@ def test_parquet_output_and_from_table_round_trip(fresh_dir):
     frame[["M_b"]].to_csv("sets.csv", index=False)
     assert cli.main(["sweep", "--scenario", "paper", "--T", "1", "--devices", "1", "--quiet",
                      "--from", "sets.csv", "--out", "again.csv"]) == 0
-    again = sweeps.read_table("again.csv")
+    again = io.read_table("again.csv")
     np.testing.assert_allclose(again["peak_grip"], frame["peak_grip"], rtol=1e-9)
-    api = cj.sweep("paper", table={"M_b": frame["M_b"].to_numpy()}, T=1.0)
+    api = cj.sweep("paper", table={"M_b": frame["M_b"].to_numpy()}, T=1.0, dtype="float32")
     np.testing.assert_allclose(api["peak_grip"], frame["peak_grip"], rtol=1e-9)

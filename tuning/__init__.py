@@ -1,13 +1,13 @@
 """Tuning for coopjax: the hard model itself, differentiated, with the grip as a constraint.
 
-    objective.py    the problem (worst peak and lag over masses; grip constraint) and `judge`
+    problem.py      the problem (worst peak and lag over masses; grip constraint), `judge`, `select`
     constrained.py  an augmented Lagrangian on top of optax
-    optimize.py     the multi-start tuner: K starts in one batch, checkpoints, rejected steps (`tune`)
-    baselines.py    CMA-ES (with cma's own augmented Lagrangian) and random search, same problem
-    race.py         `--compare`: the three tuners on the same clock over seeds; the dimension study
+    tuners/         the tuner interface and registry; one file per tuner (Adam-AL, CMA-ES, random search)
+    evaluate.py     the evaluator every tuner shares (values, Jacobians, gradients; compile kept apart)
+    driver.py       ask / evaluate / tell on a clock and a budget; checkpoints and resume by replay
+    race.py         `--compare`: every registered tuner on one clock over seeds
     plots.py        before/after traces, convergence, the race, the Pareto front
-    cli.py          `coopjax tune`
-"""
+    cli.py          `coopjax tune` (registered with `coopjax` as an entry point)
 
-from tuning.objective import GAINS, Problem, Verdict, judge
-from tuning.optimize import TuneConfig, TuneState, tune
+Imports run one way: `tuning` uses `coopjax`; `coopjax` never imports `tuning`.
+"""

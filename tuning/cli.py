@@ -1,8 +1,9 @@
 """`coopjax tune`: tune on the hard model, judge before/after on held-out masses, write OUT and plots.
 
-Modes: a plain run (the default), `--compare` (the race of the gradient tuner, CMA-ES and random
-search over seeds on one clock), and `--pareto` (one run per lag weight; the front of worst-case
-peak force against worst-case lag, with CMA-ES's and random search's points).
+Registered with the `coopjax` command through the entry-point group `coopjax.commands` (see
+pyproject.toml), so that `coopjax` never imports this package. Modes: a plain run (the default),
+`--compare` (the race of every registered tuner over seeds on one clock), and `--pareto` (one run per
+lag weight; the front of worst-case peak force against worst-case lag).
 """
 
 from __future__ import annotations
@@ -11,29 +12,44 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import time
 
+import jax
 import numpy as np
 
-from coopjax.cliutil import BadInput, check_output, parse_assignment
-from coopjax.io import atomic_path
+from coopjax.cli import interrupts
+from coopjax.cli.common import BadInput, assignments, check_output
+from coopjax.errors import InputError
+from coopjax.io import Outputs, write_json
+from coopjax.params import make_params, split_name
+from coopjax.simulation import simulate
+from coopjax.stability import check_step
+from tuning import driver, race
+from tuning.plots import plot_history, plot_pareto, plot_race, plot_traces
+from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, JUDGE_DT, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem,
+                            check_mass_range, expand_params, from_log, held_out_masses, judge, judge_config, select,
+                            starting_points, training_config, validation_masses)
+from tuning.tuners import TUNERS
+from tuning.tuners.adam import MODES, AdamAL
 
+NAME = "tune"
 DEFAULT_OUT = "tuned.json"
+# API names of the tuning problem and its tuner, and the flags that set them.
+FIELD_FLAGS = {"names": "--params", "n_masses": "--train-masses", "learning_rate": "--lr", "cvar_alpha": "--cvar-alpha",
+               "w_lag": "--w-lag", "al_every": "--al-every", "spread": "--spread", "masses": "--masses"}
+STARTS, SPREAD = 8, 2.5  # K starting points: the first is the user's (Table 1's), the others drawn near it
 
 
 def add_parser(sub):
-    from tuning.objective import AGGREGATES, JUDGE_DT, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem
-    from tuning.optimize import TuneConfig
-
-    d, p0 = TuneConfig(), Problem()
+    d, p0 = AdamAL(), Problem()
     p = sub.add_parser(
-        "tune", help="tune the controller on the hard model; judge before/after on held-out masses",
+        NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
         description="Tune controller parameters on the carry scenario: K starting points at once, Adam on an "
         "augmented Lagrangian (worst-case peak grip force + w_lag x worst-case RMS lag, subject to the grip "
         "holding at every training mass), differentiated through the hard switch under the sliding-mode "
         "integrator. The result is judged with the hard model at --judge-dt on held-out masses. Writes OUT "
-        "(json), OUT's _history.png and _traces.png (with --compare: _race.png; with --pareto: _pareto.png).",
+        "(json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
+        "_race.png; with --pareto: _pareto.png).",
     )
     p.add_argument("--params", default="all", help="comma-separated names, or gains (K_GP,K_GI,tau,G_e), per-robot "
                    "(the 4 gains of each robot: 8) or all (per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14) (default all)")
@@ -47,22 +63,22 @@ def add_parser(sub):
     p.add_argument("--aggregate", default=p0.aggregate, help=f"worst case over masses: {', '.join(AGGREGATES)} (default {p0.aggregate})")
     p.add_argument("--temperature", type=float, default=p0.temperature, help=f"softness of smoothmax, N (default {p0.temperature:g})")
     p.add_argument("--cvar-alpha", type=float, default=p0.cvar_alpha, help=f"cvar: the worst share of masses averaged (default {p0.cvar_alpha:g})")
-    p.add_argument("--starts", type=int, default=d.starts, help=f"starting points run as one batch (default {d.starts}; the first is Table 1's)")
+    p.add_argument("--starts", type=int, default=STARTS, help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)")
     p.add_argument("--steps", type=int, default=d.steps, help=f"optimiser steps (default {d.steps})")
     p.add_argument("--mode", default=d.mode, help="forward, reverse, or auto: forward up to 4 parameters, reverse above (default auto)")
     p.add_argument("--lr", type=float, default=d.learning_rate, help=f"peak learning rate, log units (default {d.learning_rate:g})")
     p.add_argument("--rho", type=float, default=d.rho, help=f"initial penalty of the augmented Lagrangian, 1/N (default {d.rho:g})")
     p.add_argument("--al-every", type=int, default=d.al_every, help=f"steps between multiplier updates (default {d.al_every})")
-    p.add_argument("--spread", type=float, default=d.spread, help=f"random starts lie within x/÷ e^SPREAD of the first (default {d.spread:g})")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of the random starts and of the mass draws (default 0)")
+    p.add_argument("--spread", type=float, default=SPREAD, help=f"random starts lie within x/÷ e^SPREAD of the first (default {SPREAD:g})")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random starts and of the mass draws (default 0)")
     p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"step of the hard model for validation and judging, s (default {JUDGE_DT:g})")
     p.add_argument("--held-out", type=int, default=12, help="held-out masses for judging (default 12, ends included)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="fix another parameter (repeatable)")
     p.add_argument("--out", default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT}); plots go beside it")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted plain run from OUT.ckpt.npz")
-    p.add_argument("--compare", action="store_true", help="race the gradient tuner, CMA-ES and random search over --seeds on one clock")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted plain run from OUT.ckpt")
+    p.add_argument("--compare", action="store_true", help="race every registered tuner over --seeds on one clock")
     p.add_argument("--seeds", default="0,1,2,3,4", help="seeds of --compare (default 0,1,2,3,4)")
-    p.add_argument("--pareto", action="store_true", help="one run per lag weight: the worst-peak / worst-lag front, with CMA-ES and random search")
+    p.add_argument("--pareto", action="store_true", help="one run per lag weight: the worst-peak / worst-lag front of every tuner")
     p.add_argument("--lag-weights", default="0.5,1.5,4", help="lag weights of --pareto, N/mm (default 0.5,1.5,4)")
     p.add_argument("--devices", type=int, default=None, help="CPU devices (default: one per core)")
     p.add_argument("--quiet", action="store_true", help="a progress bar instead of a line per step")
@@ -82,59 +98,7 @@ def _parse_list(text, what, cast=str):
     return out
 
 
-def build(args):
-    """Check every flag and return (TuneConfig, base Params, held-out masses); nothing is run."""
-    from coopjax.params import make_params
-    from tuning.objective import (SURROGATE_DT, TRAIN_DT, Problem, check_tuned_names, expand_params, held_out_masses)
-    from tuning.optimize import PAPER_GAINS, TuneConfig
-
-    names = check_tuned_names(expand_params(args.params))
-    masses = _parse_masses(args.masses)
-    if args.held_out < 2:
-        raise BadInput(f"--held-out is {args.held_out}: judge on at least 2 masses (the lightest and the heaviest)")
-    dt = args.dt if args.dt is not None else (TRAIN_DT if args.switch == "hard" else SURROGATE_DT)
-    for flag, value in (("--judge-dt", args.judge_dt), ("--dt", dt)):
-        if not (math.isfinite(value) and value > 0):
-            raise BadInput(f"{flag} is {value:g}: it must be positive")
-    fixed = dict(parse_assignment(s) for s in args.set)
-    if len(fixed) != len(args.set):
-        raise BadInput("--set names a parameter twice")
-    tuned_bases = {n.rsplit("_", 1)[0] if n.endswith(("_L", "_R")) else n for n in names}
-    clash = [n for n in fixed if n in names or n in tuned_bases or (n.endswith(("_L", "_R")) and n[:-2] in names)]
-    if clash:
-        raise BadInput(f"{clash[0]} is both tuned (--params) and fixed (--set): choose one")
-    base = make_params(**fixed)
-    start = {}
-    for n in names:
-        b = n[:-2] if n.endswith(("_L", "_R")) else n
-        start[n] = PAPER_GAINS[b] if (b in PAPER_GAINS and b not in fixed) else float(np.asarray(base.get(n)).ravel()[0])
-    problem = Problem(names=names, masses=masses, n_masses=args.train_masses, margin=args.margin, jitter=args.jitter,
-                      switch=args.switch,
-                      dt=dt, w_lag=args.w_lag, aggregate=args.aggregate, temperature=args.temperature,
-                      cvar_alpha=args.cvar_alpha)
-    config = TuneConfig(problem=problem, starts=args.starts, steps=args.steps, mode=args.mode, seed=args.seed,
-                        learning_rate=args.lr, al_every=args.al_every, rho=args.rho, spread=args.spread,
-                        start=tuple(start.items()))
-    config.validate()
-    from coopjax.stability import check_step
-
-    check_step(base.replace(**start), problem.config)  # the first start must survive its first step
-    if args.compare and args.pareto:
-        raise BadInput("--compare and --pareto are separate runs: choose one")
-    if args.resume and (args.compare or args.pareto):
-        raise BadInput("--resume continues a plain run; --compare and --pareto start afresh")
-    if args.compare:
-        _parse_list(args.seeds, "--seeds", int)
-    if args.pareto:
-        weights = _parse_list(args.lag_weights, "--lag-weights", float)
-        if any(not (x >= 0 and math.isfinite(x)) for x in weights):
-            raise BadInput(f"--lag-weights {args.lag_weights!r}: give non-negative numbers")
-    return config, base, held_out_masses(masses, args.held_out)
-
-
 def _parse_masses(text: str):
-    from tuning.objective import check_mass_range
-
     parts = text.split(":")
     if len(parts) != 3 or parts[0] not in ("uniform", "loguniform"):
         raise BadInput(f"--masses expects loguniform:LOW:HIGH or uniform:LOW:HIGH, got {text!r}")
@@ -146,15 +110,94 @@ def _parse_masses(text: str):
     return masses
 
 
+class Plan:
+    """Every flag checked, nothing run: the problem, the tuner, the base parameters, the starts."""
+
+    def __init__(self, args):
+        names = expand_params(args.params)
+        masses = _parse_masses(args.masses)
+        if args.held_out < 2:
+            raise BadInput(f"--held-out is {args.held_out}: judge on at least 2 masses (the lightest and the heaviest)")
+        for flag, value in (("--starts", args.starts), ("--steps", args.steps), ("--al-every", args.al_every)):
+            if value < 1:
+                raise BadInput(f"{flag} is {value}: it must be a whole number, at least 1")
+        if args.seed < 0:
+            raise BadInput(f"--seed is {args.seed}: it must be 0 or more")
+        if args.mode not in MODES:
+            raise BadInput(f"--mode must be one of {', '.join(MODES)}, not {args.mode!r}")
+        for flag, value in (("--lr", args.lr), ("--rho", args.rho)):
+            if not (math.isfinite(value) and value > 0):
+                raise BadInput(f"{flag} is {value:g}: it must be positive")
+        if not (math.isfinite(args.spread) and args.spread >= 0):
+            raise BadInput(f"--spread is {args.spread:g}: it must be 0 or more")
+        if not (math.isfinite(args.judge_dt) and args.judge_dt > 0):
+            raise BadInput(f"--judge-dt is {args.judge_dt:g}: it must be positive")
+        if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
+            raise BadInput(f"--dt is {args.dt:g}: it must be positive")
+        if args.switch not in SWITCHES:
+            raise BadInput(f"--switch must be one of {', '.join(SWITCHES)}, not {args.switch!r}")
+        fixed = assignments(args.set)
+        if any(split_name(n)[0] == "M_b" for n in fixed):
+            raise BadInput("--set M_b: the body mass is what the tuner varies; give its range with --masses")
+        def overlaps(a, b):  # the same parameter, for a robot both names cover
+            (base_a, robot_a), (base_b, robot_b) = split_name(a), split_name(b)
+            return base_a == base_b and (robot_a is None or robot_b is None or robot_a == robot_b)
+
+        clash = [n for n in fixed if any(overlaps(n, t) for t in names)]
+        if clash:
+            raise BadInput(f"{clash[0]} is both tuned (--params) and fixed (--set): choose one")
+        self.base = make_params(**fixed)
+        self.first = {n: float(np.asarray(self.base.get(n)).ravel()[0]) for n in names}
+        self.problem = Problem(names=names, masses=masses, n_masses=args.train_masses, margin=args.margin,
+                               jitter=args.jitter, config=training_config(args.switch, args.dt), w_lag=args.w_lag,
+                               aggregate=args.aggregate, temperature=args.temperature, cvar_alpha=args.cvar_alpha).validate()
+        self.tuner = AdamAL(steps=args.steps, mode=args.mode, learning_rate=args.lr, al_every=args.al_every, rho=args.rho)
+        self.starts, self.spread, self.seed = args.starts, args.spread, args.seed
+        self.held_out = held_out_masses(masses, args.held_out)
+        self.judge_dt = args.judge_dt
+        # The first start must survive its first step, in training and in judging.
+        first = self.base.replace(**self.first)
+        check_step(first, self.problem.config)
+        check_step(first, judge_config(self.judge_dt).validate())
+        if args.compare and args.pareto:
+            raise BadInput("--compare and --pareto are separate runs: choose one")
+        if args.resume and (args.compare or args.pareto):
+            raise BadInput("--resume continues a plain run; --compare and --pareto start afresh")
+        self.seeds = _parse_list(args.seeds, "--seeds", int) if args.compare else None
+        if self.seeds is not None and min(self.seeds) < 0:
+            raise BadInput(f"--seeds {args.seeds!r}: every seed must be 0 or more")
+        self.weights = _parse_list(args.lag_weights, "--lag-weights", float) if args.pareto else None
+        if self.weights is not None and any(not (x >= 0 and math.isfinite(x)) for x in self.weights):
+            raise BadInput(f"--lag-weights {args.lag_weights!r}: give non-negative numbers")
+        if args.compare or args.pareto:
+            for name, cls in TUNERS.items():  # every tuner of the study must be able to start
+                try:
+                    cls().init(self.problem, np.zeros((1, len(names))), 0)
+                except InputError as error:
+                    raise BadInput(f"--{'compare' if args.compare else 'pareto'} runs every tuner, and {name} "
+                                   f"cannot: {error}") from None
+
+    def starts_for(self, seed: int, problem: Problem | None = None) -> np.ndarray:
+        return starting_points(problem or self.problem, self.base, self.first, self.starts, self.spread, seed)
+
+    def describe(self) -> dict:
+        return {"problem": _plain(self.problem), "tuner": self.tuner.name, "tuner_settings": dataclasses.asdict(self.tuner),
+                "starts": self.starts, "spread": self.spread, "seed": self.seed, "judge_dt": self.judge_dt}
+
+
+def _plain(problem: Problem) -> dict:
+    d = {f.name: getattr(problem, f.name) for f in dataclasses.fields(problem)}
+    d["config"] = json.loads(problem.config.to_json())
+    return d
+
+
 def paths(out: str) -> dict:
     stem = out[:-5] if out.endswith(".json") else out
-    return {"out": out, "checkpoint": out + ".ckpt.npz", "history": stem + "_history.png", "traces": stem + "_traces.png",
+    return {"out": out, "checkpoint": out + ".ckpt", "history": stem + "_history.png", "traces": stem + "_traces.png",
             "race": stem + "_race.png", "pareto": stem + "_pareto.png"}
 
 
-def cmd_tune(args) -> int:
-    import jax
-
+def run(args) -> int:
     # Both before any array exists: JAX reads them when its backend starts.
     jax.config.update("jax_enable_x64", True)  # training and judging are float64
     if args.devices is not None and args.devices < 1:
@@ -164,7 +207,6 @@ def cmd_tune(args) -> int:
     except RuntimeError:  # the backend is already up (a test, or an embedding program): keep its devices
         pass
     check_output(args.out, "--out", ("json",))
-    config, base, held_out = build(args)
     files = paths(args.out)
     written = ["history", "traces", "checkpoint"] if not (args.compare or args.pareto) else (
         ["race"] if args.compare else ["pareto"])
@@ -174,69 +216,70 @@ def cmd_tune(args) -> int:
         raise BadInput(f"{files['checkpoint']} holds an interrupted run: add --resume to finish it, or delete it")
     if args.resume and not os.path.exists(files["checkpoint"]):
         raise BadInput(f"--resume: there is no {files['checkpoint']} to continue")
-    try:
-        if args.compare:
-            return _compare(args, config, base, files)
-        if args.pareto:
-            return _pareto(args, config, base, held_out, files)
-        return _tune_and_report(args, config, base, held_out, files)
-    except KeyboardInterrupt:
-        resumable = os.path.exists(files["checkpoint"])
-        print("\ncoopjax tune: interrupted" + ("; add --resume to the same command to continue" if resumable else ""),
-              file=sys.stderr)
-        return 130
+    plan = Plan(args)
+    if args.compare:
+        return _compare(plan, files, args.quiet)
+    if args.pareto:
+        return _pareto(plan, files)
+    return _tune_and_report(plan, files, args.resume, args.quiet)
 
 
-def _tune_and_report(args, config, base, held_out, files) -> int:
-    from tuning.objective import HOLD_TOLERANCE, judge
-    from tuning.optimize import tune
+def _resumable(files):
+    return lambda: (f"the checkpoint {files['checkpoint']} is kept; add --resume to the same command to continue"
+                    if os.path.exists(files["checkpoint"]) else None)
 
+
+def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
     start = time.perf_counter()
-    mode = config.resolved_mode
-    print(f"tuning {', '.join(config.problem.names)}: {config.starts} starts x {config.problem.n_masses} training masses "
-          f"per step, {config.problem.switch} model ({config.problem.config.method}, dt = {config.problem.dt:g} s), "
-          f"{mode} mode, {config.steps} steps")
-    state = tune(config, base, checkpoint=files["checkpoint"], resume=args.resume, progress=args.quiet)
-    start_values = config.start_values
-    tuned, selection = _select(args, config, base, state)
-    print(f"judging with the hard model (filippov), float64, dt = {args.judge_dt:g} s, on {len(held_out)} held-out masses "
-          f"from {held_out[0]:.3g} to {held_out[-1]:.3g} kg ...")
-    w_lag = config.problem.w_lag
-    before, after = judge([start_values, tuned], held_out, base, w_lag, args.judge_dt)
-    result = {
-        "params": tuned,
-        "start": start_values,
-        "before": before.row(),
-        "after": after.row(),
-        "held_out_masses": [float(m) for m in held_out],
+    problem, tuner = plan.problem, plan.tuner
+    mode = tuner.resolved_mode(len(problem.names))
+    print(f"tuning {', '.join(problem.names)}: {plan.starts} starts x {problem.n_masses} training masses per step, "
+          f"{problem.switch} model ({problem.config.method}, dt = {problem.dt:g} s), {mode} mode, {tuner.steps} steps")
+    interrupts.report_with(_resumable(files))
+
+    def line(state, query, ev):
+        i = int(np.argmin(np.where(ev.holds, ev.f, np.inf))) if ev.holds.any() else None
+        best = f"best holding start {i}: f {ev.f[i]:.4g} N" if i is not None else "no start holds yet"
+        print(f"step {state.step:4d}/{tuner.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
+              f"mass, {state.history['rejected'][-1]} rejected; {best}")
+
+    result = driver.run(tuner, problem, plan.base, plan.starts_for(plan.seed), plan.seed, checkpoint=files["checkpoint"],
+                        resume=resume, progress=quiet, total=tuner.steps, on_step=None if quiet else line)
+    tuned, selection = _select(plan, result)
+    print(f"judging with the hard model (filippov), float64, dt = {plan.judge_dt:g} s, on {len(plan.held_out)} held-out "
+          f"masses from {plan.held_out[0]:.3g} to {plan.held_out[-1]:.3g} kg ...")
+    before, after = judge([plan.first, tuned], plan.held_out, plan.base, problem.w_lag, plan.judge_dt)
+    history = dict(result.state.history)
+    history.pop("theta", None)
+    data = {
+        "params": tuned, "start": plan.first, "before": before.row(), "after": after.row(),
+        "held_out_masses": [float(m) for m in plan.held_out],
         "judge": {"switch": "hard", "contact": "unilateral", "integrator": "filippov", "dtype": "float64",
-                  "dt": args.judge_dt, "hold_tolerance_N": HOLD_TOLERANCE},
-        "config": json.loads(config.to_json()),
-        "mode": mode,
-        "history": {k: v for k, v in state.history.items() if k != "theta"},
-        "trajectories": state.trajectories,
-        "tuning_seconds": state.elapsed,
-        "selection": selection,
+                  "dt": plan.judge_dt, "hold_tolerance_N": HOLD_TOLERANCE},
+        "config": plan.describe(), "mode": mode, "history": history, "trajectories": result.trajectories,
+        "tuning_seconds": result.elapsed, "compile_seconds": result.compile_s, "selection": selection,
     }
-    _write_json(files["out"], result)
-    _plots(config, base, held_out, start_values, tuned, state, files, args.judge_dt)
+    with Outputs() as out:  # the result and its figures together, or none of them
+        nulls = write_json(out.path(files["out"]), data)
+        _plots(plan, tuned, result, files, out)
     os.remove(files["checkpoint"])
-    _print_table(before, after, start_values, tuned, config)
-    print(f"{state.trajectories} trajectories, {state.elapsed:.0f} s of tuning, {time.perf_counter() - start:.0f} s in all")
+    interrupts.report_with(lambda: None)
+    _print_table(before, after, plan.first, tuned, problem)
+    if nulls:
+        print(f"({len(nulls)} figure(s) that are not finite are null in {files['out']})")
+    print(f"{result.trajectories} trajectories, {result.elapsed:.0f} s of tuning (+ {result.compile_s:.0f} s compiling), "
+          f"{time.perf_counter() - start:.0f} s in all")
     print(f"wrote {files['out']}, {files['history']} and {files['traces']}")
     return 0
 
 
-def _select(args, config, base, state):
-    """Among each start's best holding iterate and its final one, the best on validation masses."""
-    from tuning.objective import select, validation_masses
-    from tuning.optimize import candidates
-
-    options = candidates(state, config.problem.names)
-    masses = validation_masses(config.problem)
-    print(f"selecting among {len(options)} candidates (each start's best holding iterate and its last): hard model on "
-          f"{len(masses)} validation masses from {masses[0]:.3g} to {masses[-1]:.3g} kg (none of them held out) ...")
-    chosen, verdicts = select(options, masses, base, config.problem.w_lag, args.judge_dt)
+def _select(plan: Plan, result):
+    """Among the tuner's candidates, the best on the validation masses."""
+    options = [from_log(t, plan.problem.names) for t in result.tuner.candidates(result.state)]
+    masses = validation_masses(plan.problem)
+    print(f"selecting among {len(options)} candidates: hard model on {len(masses)} validation masses from "
+          f"{masses[0]:.3g} to {masses[-1]:.3g} kg (none of them held out) ...")
+    chosen, verdicts = select(options, masses, plan.base, plan.problem.w_lag, plan.judge_dt)
     v = verdicts[chosen]
     held = sum(x.holds for x in verdicts)
     print(f"  {held} of {len(options)} hold at every validation mass; the chosen one: min grip {v.min_grip:.3f} N, "
@@ -245,22 +288,15 @@ def _select(args, config, base, state):
                              "validation_masses": [float(m) for m in masses], "validation": v.row()}
 
 
-def _write_json(path, data):
-    with atomic_path(path) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(data, f, indent=1, allow_nan=True)
-
-
-def _print_table(before, after, start, tuned, config):
-    names = config.problem.names
+def _print_table(before, after, start, tuned, problem):
     print()
     print(f"{'':<30} {'start (Table 1)':>16} {'tuned':>12}")
-    for n in names:
+    for n in problem.names:
         print(f"{n:<30} {start[n]:>16.5g} {tuned[n]:>12.5g}")
     rows = [("worst min grip [N]", "min_grip", 1), ("worst peak grip [N]", "peak_grip", 1),
             ("worst RMS lag [mm]", "rms_lag", 1e3), ("worst slip [N^2]", "slip", 1), ("worst crush [N^2]", "crush", 1),
             ("worst after-release crush [N^2]", "impact", 1),
-            (f"peak + {config.problem.w_lag:g} x lag [N]", "objective", 1)]
+            (f"peak + {problem.w_lag:g} x lag [N]", "objective", 1)]
     for label, key, scale in rows:
         print(f"{label:<30} {getattr(before, key) * scale:>16.4g} {getattr(after, key) * scale:>12.4g}")
     verdict = lambda v: "yes" if v.holds else "NO"
@@ -268,73 +304,71 @@ def _print_table(before, after, start, tuned, config):
     print()
 
 
-def _plots(config, base, held_out, start_values, tuned, state, files, judge_dt):
-    import coopjax as cj
-    from tuning.plots import plot_history, plot_traces
-
-    plot_history(state.history, files["history"], config)
-    ends = np.array([held_out[0], held_out[-1]])
+def _plots(plan: Plan, tuned, result, files, out: Outputs):
+    p = plan.problem
+    what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
+    plot_history(result.state.history, out.path(files["history"]),
+                 f"tuning {what} on the {p.switch} model (dt = {p.dt:g} s), {plan.starts} starts x {p.n_masses} masses, "
+                 f"{plan.tuner.resolved_mode(len(p.names))} mode")
+    ends = np.array([plan.held_out[0], plan.held_out[-1]])
     runs = {}
-    for label, values in (("start (Table 1)", start_values), ("tuned", tuned)):
-        params = base.replace(M_b=ends, **values)
-        runs[label] = cj.simulate(params, "carry", switch="hard", integrator="filippov", dt=judge_dt,
-                                  every=1, check_dt=False).trajectory
-    plot_traces(runs, ends, float(np.asarray(base.F_lim).min()), float(np.asarray(base.F_max)), files["traces"])
+    for label, values in (("start (Table 1)", plan.first), ("tuned", tuned)):
+        params = plan.base.replace(M_b=ends, **values)
+        runs[label] = simulate(params, judge_config(plan.judge_dt), every=1, check_dt=False).trajectory
+    plot_traces(runs, ends, float(np.asarray(plan.base.F_lim).min()), float(np.asarray(plan.base.F_max)),
+                out.path(files["traces"]))
 
 
-def _compare(args, config, base, files) -> int:
-    from tuning import race
-    from tuning.plots import plot_race
+def _tuners(plan: Plan) -> dict:
+    """Every registered tuner, the plan's own with its flags, the others with their defaults."""
+    return {name: (plan.tuner if name == plan.tuner.name else cls()) for name, cls in TUNERS.items()}
 
-    seeds = _parse_list(args.seeds, "--seeds", int)
-    result = race.run(config, base, seeds, progress=args.quiet)
-    result["config"] = json.loads(config.to_json())
-    _write_json(files["out"], result)
-    plot_race(result, files["race"])
+
+def _compare(plan: Plan, files, quiet: bool) -> int:
+    result = race.run(_tuners(plan), plan.tuner.name, plan.problem, plan.base, plan.starts_for, plan.seeds,
+                      progress=quiet, judge_dt=plan.judge_dt)
+    result["config"] = plan.describe()
+    with Outputs() as out:
+        write_json(out.path(files["out"]), result)
+        plot_race(result, out.path(files["race"]))
     race.print_summary(result)
     print(f"wrote {files['out']} and {files['race']}")
     return 0
 
 
-def _pareto(args, config, base, held_out, files) -> int:
-    from tuning import baselines, race
-    from tuning.objective import from_log, judge, log_bounds, select, to_log, validation_masses
-    from tuning.optimize import candidates, tune
-    from tuning.plots import plot_pareto
-
-    weights = _parse_list(args.lag_weights, "--lag-weights", float)
-    names, F_lim = config.problem.names, float(np.asarray(base.F_lim).min())
-    masses = validation_masses(config.problem)
-    points = {"gradient": [], "CMA-ES": [], "random search": []}
-    random_record = None
-    for w_lag in weights:
-        problem = dataclasses.replace(config.problem, w_lag=w_lag)
-        run = dataclasses.replace(config, problem=problem)
+def _pareto(plan: Plan, files) -> int:
+    names = plan.problem.names
+    masses = validation_masses(plan.problem)
+    tuners = _tuners(plan)
+    rows_in: list[tuple[str, str, float | None, dict]] = []  # (kind, tuner, w_lag, params)
+    cloud: list[dict] = []
+    budget = None
+    for w_lag in plan.weights:
+        problem = dataclasses.replace(plan.problem, w_lag=w_lag)
+        starts = plan.starts_for(plan.seed, problem)
         print(f"-- lag weight {w_lag:g} N/mm")
-        state = tune(run, base, log=lambda s: None, progress=True)
-        options = candidates(state, names)
-        points["gradient"].append((w_lag, options[select(options, masses, base, w_lag, args.judge_dt)[0]]))
-        theta0 = np.clip(to_log(config.start_values, names), *log_bounds(names))
-        record = baselines.cma_es(baselines.Evaluator(problem, base, F_lim, config.seed), names, state.elapsed, theta0,
-                                  config.seed)
-        # As in the race: CMA-ES's running choices, and the one the validation masses prefer.
-        options = [from_log(record.thetas[i], names) for _, i in race.snapshots(record)] or [from_log(theta0, names)]
-        points["CMA-ES"].append((w_lag, options[select(options, masses, base, w_lag, args.judge_dt)[0]]))
-        if random_record is None:  # one run: its cloud does not depend on the weight
-            random_record = baselines.random_search(baselines.Evaluator(problem, base, F_lim, config.seed), names, state.elapsed,
-                                                    config.seed)
-    held = [i for i, h in enumerate(random_record.holds) if h]
-    cloud = [dict(zip(names, np.exp(random_record.thetas[i]))) for i in held]
-    flat = [(tuner, w, p) for tuner, pts in points.items() for w, p in pts] + [("random search", None, p) for p in cloud]
+        for name, tuner in tuners.items():
+            limit = driver.Budget() if name == plan.tuner.name else driver.Budget(seconds=budget)
+            result = driver.run(tuner, problem, plan.base, starts, plan.seed, budget=limit, progress=True)
+            if name == plan.tuner.name:
+                budget = result.elapsed
+            options = [from_log(t, names) for t in tuner.candidates(result.state)]
+            options += [from_log(result.record.thetas[i], names) for _, i in race.snapshots(result.record)]
+            if options:
+                rows_in.append(("front", name, w_lag, options[select(options, masses, plan.base, w_lag, plan.judge_dt)[0]]))
+            if w_lag == plan.weights[0]:  # the cloud of what held in training, once
+                cloud += [from_log(t, names) for t, h in zip(result.record.thetas, result.record.holds) if h][:200]
+    flat = [(kind, t, w, p) for kind, t, w, p in rows_in] + [("cloud", None, None, p) for p in cloud]
     print(f"judging {len(flat)} parameter sets on the held-out masses ...")
-    verdicts = judge([p for _, _, p in flat], held_out, base, 1.0, args.judge_dt, progress=True)
-    rows = [{"tuner": t, "w_lag": w, "params": {k: float(v) for k, v in p.items()}, **v.row()}
-            for (t, w, p), v in zip(flat, verdicts)]
-    _write_json(files["out"], {"pareto": rows, "config": json.loads(config.to_json()),
-                               "held_out_masses": [float(m) for m in held_out]})
-    plot_pareto(rows, files["pareto"])
+    verdicts = judge([p for *_, p in flat], plan.held_out, plan.base, 1.0, plan.judge_dt, progress=True)
+    rows = [{"kind": kind, "tuner": t, "w_lag": w, "params": {k: float(v) for k, v in p.items()}, **v.row()}
+            for (kind, t, w, p), v in zip(flat, verdicts)]
+    with Outputs() as out:
+        write_json(out.path(files["out"]), {"pareto": rows, "config": plan.describe(),
+                                            "held_out_masses": [float(m) for m in plan.held_out]})
+        plot_pareto(rows, out.path(files["pareto"]))
     for r in rows:
-        if r["tuner"] != "random search":
+        if r["kind"] == "front":
             print(f"  {r['tuner']:<14} w_lag {r['w_lag']:>5g}: holds {'yes' if r['holds'] else 'NO ':>3}, "
                   f"peak {r['peak_grip']:6.2f} N, lag {r['rms_lag_mm']:6.2f} mm")
     print(f"wrote {files['out']} and {files['pareto']}")

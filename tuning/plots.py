@@ -7,7 +7,16 @@ import numpy as np
 from coopjax.plotting import _pyplot, _save  # one home for the figure helpers
 
 
-def plot_history(history: dict, path: str, config) -> None:
+COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
+def style(names) -> dict:
+    """A colour and a marker per tuner, by its place in the list (no tuner's name is special)."""
+    return {n: (COLORS[i % len(COLORS)], MARKERS[i % len(MARKERS)]) for i, n in enumerate(names)}
+
+
+def plot_history(history: dict, path: str, title: str) -> None:
     """Each start's objective and grip shortfall against the step."""
     plt = _pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
@@ -31,10 +40,7 @@ def plot_history(history: dict, path: str, config) -> None:
     b.set_title("the constraint: 0 while the grip holds", fontsize=10)
     for ax in (a, b):
         ax.grid(alpha=0.3)
-    p = config.problem
-    what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
-    fig.suptitle(f"tuning {what} on the {p.switch} model (dt = {p.dt:g} s), {config.starts} starts x "
-                 f"{p.n_masses} masses, {config.resolved_mode} mode")
+    fig.suptitle(title)
     _save(fig, path)
 
 
@@ -73,8 +79,7 @@ def plot_race(result: dict, path: str) -> None:
     fig, ax = plt.subplots(figsize=(8.5, 5), constrained_layout=True)
     horizon = max(r["budget_s"] for r in result["per_seed"])
     grid = np.linspace(0.0, horizon, 400)
-    colors = {"gradient": "tab:blue", "CMA-ES": "tab:orange", "random search": "tab:green"}
-    for name, color in colors.items():
+    for name, (color, _) in style(result["tuners"]).items():
         values = []
         for r in result["per_seed"]:
             curve = r["curves"][name]
@@ -97,22 +102,25 @@ def plot_race(result: dict, path: str) -> None:
 
 
 def plot_pareto(rows: list[dict], path: str) -> None:
-    """Worst-case peak force against worst-case RMS lag on the held-out masses, for each tuner."""
+    """Worst-case peak force against worst-case RMS lag on the held-out masses: each tuner's answers
+    (rows of kind "front", one per lag weight) over the cloud of every candidate that held in
+    training (rows of kind "cloud")."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5), constrained_layout=True)
-    random = [r for r in rows if r["tuner"] == "random search"]
-    held = [r for r in random if r["holds"]]
-    tuned = [r for r in rows if r["tuner"] != "random search" and r["holds"]]
-    # Zoom on the tuners' answers: random search's worst holding sets reach kN and metres.
+    cloud = [r for r in rows if r["kind"] == "cloud"]
+    held = [r for r in cloud if r["holds"]]
+    fronts = list(dict.fromkeys(r["tuner"] for r in rows if r["kind"] == "front"))
+    tuned = [r for r in rows if r["kind"] == "front" and r["holds"]]
+    # Zoom on the tuners' answers: the cloud's worst holding sets reach kN and metres.
     x_max = 3 * max([r["rms_lag_mm"] for r in tuned] or [50.0])
     y_max = 2 * max([r["peak_grip"] for r in tuned] or [100.0])
     shown = [r for r in held if r["rms_lag_mm"] <= x_max and r["peak_grip"] <= y_max]
-    if random:
+    if cloud:
         ax.scatter([r["rms_lag_mm"] for r in shown], [r["peak_grip"] for r in shown], marker="x", color="grey", s=14,
-                   label=f"random search: sets that held in training ({len(held)} of {len(random)} hold here, "
+                   label=f"candidates that held in training ({len(held)} of {len(cloud)} hold here, "
                          f"{len(held) - len(shown)} off the axes)")
-    for tuner, color, marker in (("gradient", "tab:blue", "o"), ("CMA-ES", "tab:orange", "s")):
-        pts = sorted((r for r in rows if r["tuner"] == tuner), key=lambda r: r["rms_lag_mm"])
+    for tuner, (color, marker) in style(fronts).items():
+        pts = sorted((r for r in rows if r["tuner"] == tuner and r["kind"] == "front"), key=lambda r: r["rms_lag_mm"])
         ok = [r for r in pts if r["holds"]]
         if ok:
             ax.plot([r["rms_lag_mm"] for r in ok], [r["peak_grip"] for r in ok], marker + "-", color=color,

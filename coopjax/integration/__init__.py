@@ -1,9 +1,17 @@
-"""Integration layer: the shared loop (`loop`) and the integrators it runs, side by side.
+"""Integration: the interface and registry of integrators, the built-in ones, and the shared loop.
 
-- `rk4`: plain fixed-step RK4, for any switch.
-- `filippov`: the sliding-mode step for the hard switch (SLIDING.md), the default for it.
+- `base.py`: `Integrator` (one class per integrator), `register`, `Observation` (what a step hands
+  to the metrics), the linear stability regions that the step check uses;
+- `plain_rk4.py`: plain fixed-step RK4, for any switch;
+- `filippov.py`: the sliding-mode step for the hard switch, the default for it;
+- `loop.py`: `integrate`, the `lax.scan` over steps shared by every integrator.
 """
 
-from coopjax.integration.loop import (CONVERGED_DT, INTEGRATORS, SimConfig, Solution, Trajectory, default_integrator, integrate,
-                                      simulate, step)
+from coopjax.integration.base import (INTEGRATORS, Integrator, Observation, default_for, get, max_stable_dt, register,
+                                      rk4_amplification)
+from coopjax.integration.loop import Settings, Solution, Trajectory, batched_leaves, integrate, step
+from coopjax.integration import filippov  # noqa: E402,F401  (registers itself, first: the CLI lists it first)
 from coopjax.integration.plain_rk4 import rk4
+
+__all__ = ["INTEGRATORS", "Integrator", "Observation", "Settings", "Solution", "Trajectory", "batched_leaves",
+           "default_for", "get", "integrate", "max_stable_dt", "register", "rk4", "rk4_amplification", "step"]

@@ -1,10 +1,10 @@
-"""The sliding-mode integrator for the hard switch (SLIDING.md): fixed step, branch-free, batched.
+"""The sliding-mode integrator for the hard switch (docs/model.md, "The sliding-mode step"): fixed step, branch-free, batched.
 
 The hard switch makes the field discontinuous on sigma_i = F_i - F_lim = 0. In the carry scenario
 both surfaces attract, so the exact solution slides on them (a Filippov sliding mode), and plain RK4
 chatters across them and converges only at O(dt). This step reaches the dt -> 0 limit at dt = 1e-3.
 
-"Structure that makes it cheap" (SLIDING.md):
+What makes it cheap:
 - Each robot's switch w_i enters only its own nine rows, and the body's rows hold no w. So the rate of
   robot i's switching function, sigma_dot_i = K_g delta_dot_i + R_g s_i (a_r,i - a_o), depends on
   w_i alone: one scalar weight per robot.
@@ -27,7 +27,7 @@ time is predicted from delta + delta_dot tau + delta_ddot tau^2 / 2 = 0 (delta_d
 contact-free field). The step is two RK4 substeps: up to the earliest impact with that robot's
 contact forced off, then the rest with it forced on (no delta > 0 test). Without an impact the
 second substep has zero length, an exact no-op, so the step map stays continuous. The force just
-after the first substep is returned for the peak metric (MODEL.md section 7).
+after the first substep is returned for the peak metric (docs/model.md, "Metrics").
 
 Stage times differ per sample within the substeps; commands take them through `Clock.advance`.
 
@@ -43,9 +43,10 @@ import jax
 import jax.numpy as jnp
 
 from coopjax import model
+from coopjax.integration.base import Integrator, register
 from coopjax.scenarios import Clock
 
-EPS = 1e-9  # N/s: below this the two switching rates are taken as equal (SLIDING.md, step 1)
+EPS = 1e-9  # N/s: below this the two switching rates are taken as equal (the on-surface weight, step 1 below)
 # Rows that differ between the w = 0 and w = 1 fields; the kinematic rows (x_r, x_v, x_f) do not.
 SWITCHED = ("v_r", "v_v", "q_c", "v_f", "Z", "Y_e")
 
@@ -120,7 +121,7 @@ def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, opti
         p, st, s = ps[i], rows.robot(i), model.SIGNS[i]
         in_contact, F, kelvin, _, delta_dot = touch[i]
         off, aux_off = model.robot_field(p, st, s, F, 0.0, commands[i], options)
-        clamped = jnp.maximum(F, p.F_lim)  # SLIDING.md: the clamp of the w = 1 field
+        clamped = jnp.maximum(F, p.F_lim)  # the clamp of the w = 1 field (module docstring)
         on, aux_on = model.robot_field(p, st, s, F, 1.0, commands[i], options, F_gamma=clamped, F_memory=clamped)
         # d/dt (K_g delta + R_g delta_dot) for each field: the body's rows hold no w.
         sd0 = p.K_g * delta_dot + p.R_g * s * (off["v_r"] - body["v_o"])
@@ -131,7 +132,7 @@ def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, opti
 
 
 def weight(f: Fields, sigma_n, h):
-    """lambda of one robot (B,): SLIDING.md "The scheme", steps 1 and 2, at one stage.
+    """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
 
     sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,).
     Divisions are guarded so that a branch that is not taken cannot put a NaN in a gradient.
@@ -152,7 +153,7 @@ def weight(f: Fields, sigma_n, h):
 
 
 def combine(f: Fields, lam):
-    """One robot's rows f0 + lambda (f1 - f0) (SLIDING.md step 3)."""
+    """One robot's rows f0 + lambda (f1 - f0) (step 3 of the scheme)."""
     rates = dict(f.off)
     for q in SWITCHED:
         rates[q] = f.off[q] + lam * (f.on[q] - f.off[q])
@@ -189,7 +190,7 @@ def substep(ps, rows: Rows, clock: Clock, h, contact, scenario, options):
     28 s to compile (measured), growing faster than the chain's length, and the forward step ran no
     faster. Returns the new state and both robots' contact forces at the first stage.
     """
-    # Every stage's theta uses sigma at the substep start (SLIDING.md step 2): the contact alone.
+    # Every stage's theta uses sigma at the substep start (step 2 of the scheme): the contact alone.
     sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, contact), ps))
 
     def stage(carry, tableau):
@@ -211,7 +212,7 @@ def impact_fraction(p, st, s, a_r_off, a_o, dt):
     The contact time solves delta + delta_dot tau + delta_ddot tau^2 / 2 = 0, written without
     cancellation as tau = -2 delta / (delta_dot + sqrt(delta_dot^2 - 2 delta_ddot delta)). For a robot
     out of contact the step-start switch-off field is the contact-free one, so delta_ddot comes from
-    its tip acceleration a_r_off and the body's a_o. SLIDING.md, "Impacts".
+    its tip acceleration a_r_off and the body's a_o. See "Impacts" in the module docstring.
     """
     delta, delta_dot, _ = model.geometry(p, st, s)
     delta_ddot = s * (a_r_off - a_o)
@@ -225,25 +226,23 @@ def impact_fraction(p, st, s, a_r_off, a_o, dt):
 
 
 def step(params, y, t, dt, scenario, options):
-    """y(t) -> (y(t + dt), F and x_ref at t, force just after a located impact): the loop's step protocol."""
+    """y(t) -> (y(t + dt), the signals at t, the force just after a located impact)."""
     rows = Rows.of(y)
     ps = model.robots(params)
     clock = Clock.at(t)
-    # At the step start the metrics need only F and x_ref, and the impact prediction only the
-    # switch-off field: the switch-on field and the weight are left to the stages.
-    commands = scenario.command(ps[0], clock)
-    touch = _contacts(ps, rows, options)
-    F = jnp.stack([touch[0][1], touch[1][1]])
-    x_ref = jnp.stack([c[2] for c in commands])
+    # At the step start the metrics see the signals, and the impact prediction needs the switch-off
+    # field. Signals no metric uses (the Filippov weight, gamma) are dead code that XLA removes.
+    fs, body = fields(ps, rows, clock, None, scenario, options)
+    h_full = jnp.full(y.shape[1:], dt, y.dtype)
+    aux_start = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, weight(f, f.sigma, h_full)) for f in fs))))
+    F = aux_start.F
     if options.contact == "bilateral":  # no impacts: one RK4 step
-        h = jnp.full(y.shape[1:], dt, y.dtype)
-        new, _ = substep(ps, rows, clock, h, None, scenario, options)
-        return new.array(), F, x_ref, None
-    a_o = model.body_field(ps[0], rows.body, touch[0][1], touch[1][1])["v_o"]
+        new, _ = substep(ps, rows, clock, h_full, None, scenario, options)
+        return new.array(), aux_start, None
+    a_o = body["v_o"]
     fraction, hits = [], []
     for i in range(2):
-        off, _ = model.robot_field(ps[i], rows.robot(i), model.SIGNS[i], touch[i][1], 0.0, commands[i], options)
-        f_i, hits_i = impact_fraction(ps[i], rows.robot(i), model.SIGNS[i], off["v_r"], a_o, dt)
+        f_i, hits_i = impact_fraction(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], a_o, dt)
         fraction.append(f_i)
         hits.append(hits_i)
     theta_c = jnp.minimum(*fraction)
@@ -269,7 +268,7 @@ def step(params, y, t, dt, scenario, options):
     pairs = lambda a, b: tuple(jnp.stack([a[i], b[i]]) for i in range(2))
     xs = (jnp.stack([jnp.zeros_like(h1), h1]), jnp.stack([h1, h2]), pairs((no, no), first), pairs(first, (no, no)))
     new, start_F = jax.lax.scan(part, rows, xs)
-    return new.array(), F, x_ref, start_F[1]  # F just after the impact: the 2nd substep's start
+    return new.array(), aux_start, start_F[1]  # F just after the impact: the 2nd substep's start
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:
@@ -279,3 +278,23 @@ def observe(params, y, t, dt, scenario, options) -> model.Aux:
     h = jnp.full(y.shape[1:], dt, y.dtype)
     auxes = [aux(f, weight(f, f.sigma, h)) for f in fs]
     return model.Aux(*(jnp.stack(pair) for pair in zip(*auxes)))
+
+
+@register
+class Filippov(Integrator):
+    """The sliding-mode step for the hard switch: the dt -> 0 limit at dt = 1e-3 (docs/model.md)."""
+
+    name = "filippov"
+    description = "the sliding-mode step for the hard switch, the default for it: its answer is the dt -> 0 limit at dt = 1e-3"
+    switches = ("hard",)
+    default_for = ("hard",)
+    converged_dt = {
+        ("carry", "hard"): 2e-3,  # 16 of 16 samples, at 2e-3 and every finer step
+        ("paper", "hard"): 1e-3,  # no sliding: forces within 1e-3 N of rk4 at 1e-4
+    }
+
+    def step(self, params, y, t, dt, scenario, options):
+        return step(params, y, t, dt, scenario, options)
+
+    def observe(self, params, y, t, dt, scenario, options) -> model.Aux:
+        return observe(params, y, t, dt, scenario, options)

@@ -1,12 +1,13 @@
 """Plain fixed-step RK4 on the model's field, whatever the switch (hard, smooth, blend, straight-through).
 
-With the hard switch it chatters across F = F_lim and converges to the sliding motion only at
-O(dt) (MODEL.md section 8); `filippov` is the integrator for that case.
+With the hard switch it chatters across F = F_lim and converges to the sliding motion only at O(dt)
+(docs/model.md, "Step size"); `filippov` is the integrator for that case.
 """
 
 from __future__ import annotations
 
 from coopjax import model
+from coopjax.integration.base import Integrator, register
 from coopjax.scenarios import Clock
 
 
@@ -19,16 +20,26 @@ def rk4(f, t, y, dt, k1=None):
     return y + (dt / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
-def step(params, y, t, dt, scenario, options):
-    """y(t) -> (y(t + dt), F and x_ref at t, None): the loop's step protocol (no located impact force)."""
+@register
+class PlainRK4(Integrator):
+    name = "rk4"
+    description = "plain RK4: the only choice for the smooth switches; with the hard switch a chattering, O(dt) approximation"
+    switches = ("hard", "smooth", "blend", "straight_through")
+    default_for = ("smooth", "blend", "straight_through")
+    converged_dt = {
+        ("carry", "hard"): None,  # 10 of 16 samples at 1e-5; some gain sets need ~1e-7
+        ("carry", "straight_through"): None,  # its forward pass is the hard model under plain RK4
+        ("carry", "smooth"): 1e-4,  # the smooth model's own limit, which is not the hard model's
+        ("paper", "hard"): 1e-3,
+        ("paper", "smooth"): 1e-3,
+    }
 
-    def field(t, y):
-        return model.vector_field(params, y, Clock.at(t), scenario, options)
+    def step(self, params, y, t, dt, scenario, options):
+        def field(t, y):
+            return model.vector_field(params, y, Clock.at(t), scenario, options)
 
-    k1, aux = field(t, y)
-    return rk4(lambda t, y: field(t, y)[0], t, y, dt, k1), aux.F, aux.x_ref, None
+        k1, aux = field(t, y)
+        return rk4(lambda t, y: field(t, y)[0], t, y, dt, k1), aux, None
 
-
-def observe(params, y, t, dt, scenario, options) -> model.Aux:
-    """The signals recorded at (t, y)."""
-    return model.vector_field(params, y, Clock.at(t), scenario, options)[1]
+    def observe(self, params, y, t, dt, scenario, options) -> model.Aux:
+        return model.vector_field(params, y, Clock.at(t), scenario, options)[1]

@@ -1,0 +1,92 @@
+"""The `coopjax` command line.
+
+Commands are modules with `NAME`, `add_parser(subparsers)` and `run(args)`: the built-in ones here
+(`simulate`, `sweep`, `plot-sweep`, `analyze`, `params`), and any that another package registers
+under the entry-point group `coopjax.commands` (the tuner's `tune`, from the `tuning` package).
+
+A mistake in the input is one line on stderr and exit code 2, with no traceback and no output file.
+A full disk is one line and exit code 1, with no partial output. Ctrl-C is one line and exit code
+130 (see `interrupts`). Anything else is a bug, and keeps its traceback.
+
+Only the standard library is imported at the top of this module: the console script installs the
+interrupt handling before JAX is imported.
+"""
+
+from __future__ import annotations
+
+import errno
+import importlib
+import sys
+from importlib.metadata import entry_points
+
+from coopjax.cli import interrupts
+from coopjax.errors import InputError
+
+EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED = 2, 1, 130
+
+BUILT_IN = ("simulate", "sweep", "plot_sweep", "analyze", "params")
+GROUP = "coopjax.commands"
+
+
+def commands() -> list:
+    """The command modules: the built-in ones, then the registered ones."""
+    found = [importlib.import_module(f"coopjax.cli.{name}") for name in BUILT_IN]
+    for point in sorted(entry_points(group=GROUP), key=lambda p: p.name):
+        found.append(point.load())
+    return found
+
+
+def build_parser():
+    from coopjax.cli.common import Parser
+
+    parser = Parser(
+        prog="coopjax",
+        description="Differentiable simulator of two cooperating space robots with virtual-foundation force control "
+        "(Pathak et al.). The equations: docs/model.md in the project; tuning: docs/tuning.md; linear analysis: "
+        "docs/analysis.md.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    sub.required = True
+    parser.field_flags = {}  # API names whose flag is not their own spelling (`names` is --params)
+    for module in commands():
+        module.add_parser(sub).set_defaults(run=module.run)
+        parser.field_flags.update(getattr(module, "FIELD_FLAGS", {}))
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run one command; returns its exit code."""
+    parser = None
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        return args.run(args)
+    except InputError as error:
+        from coopjax.cli.common import message
+
+        print(f"coopjax: error: {message(error, parser)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        kept = interrupts.account()
+        print(f"coopjax: error: no space left on device ({error.filename or 'writing'}); no partial output was left"
+              + (f"; {kept}" if kept else ""), file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:  # only in-process (tests); the console script's interrupts never raise
+        kept = interrupts.account()
+        print(f"\ncoopjax: interrupted; {kept or 'nothing was written'}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # `coopjax params | head`: the reader left, nothing is wrong
+        sys.stderr.close()
+        return 0
+
+
+def entry() -> None:
+    """The console script: interrupts first, then the command."""
+    interrupts.install()
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

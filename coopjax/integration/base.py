@@ -1,0 +1,135 @@
+"""The integrator interface, the registry, and what a step hands to the metrics.
+
+An integrator is one subclass of `Integrator` in a file of its own, registered once with
+`register`. The registry is what the rest of coopjax asks: the command line's choices, the default
+integrator of each switch, the step-size check (each integrator's own stability function) and the
+step-size note (the steps measured to converge, per scenario and switch).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable, ClassVar, Mapping, NamedTuple
+
+import jax
+import numpy as np
+
+from coopjax import model
+from coopjax.errors import InputError
+
+
+class Observation(NamedTuple):
+    """What the metrics see at the sample time t_k = k dt (k = 0..N; the last has no step after it)."""
+
+    k: jax.Array  # int32 step index
+    t: jax.Array  # s
+    y: jax.Array  # (20, B) state at t_k
+    aux: model.Aux  # signals at t_k, each (2, B)
+    F_impact: jax.Array | None  # (2, B) force just after a contact onset located inside [t_k, t_k + dt), or None
+
+
+class Integrator:
+    """A fixed-step integrator of the closed loop (the shape of diffrax's `AbstractSolver`).
+
+    Subclasses set the class attributes and implement `step` and `observe`. `params` in both is the
+    pair `model.robots(params)`, split once outside the time loop; `y` is the (20, B) state.
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str] = ""
+    switches: ClassVar[tuple[str, ...]]  # the switch modes it integrates
+    default_for: ClassVar[tuple[str, ...]] = ()  # the switch modes it is the default for
+    # (scenario, switch) -> the largest step measured to be within the accuracy tolerances of the
+    # dt -> 0 limit (docs/model.md, "Step size"); None: no step tried reached them. Missing: not measured.
+    converged_dt: ClassVar[Mapping[tuple[str, str], float | None]] = {}
+
+    def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, jax.Array | None]:
+        """y(t) -> (y(t + dt), the signals at t, the force just after a contact onset located inside
+        the step, or None if the integrator locates none)."""
+        raise NotImplementedError
+
+    def observe(self, params, y, t, dt, scenario, options) -> model.Aux:
+        """The signals recorded at (t, y)."""
+        raise NotImplementedError
+
+    @staticmethod
+    def amplification(z):
+        """|R(z)| of the linear test equation y' = lambda y, z = lambda dt: classical RK4's by default."""
+        return rk4_amplification(z)
+
+    def stable_dt(self, eigenvalues: np.ndarray) -> np.ndarray:
+        """Largest stable dt per sample for the linearised loop's eigenvalues (B, ...)."""
+        return max_stable_dt(eigenvalues, type(self).amplification)
+
+    def __repr__(self):
+        return f"<integrator {self.name}>"
+
+
+INTEGRATORS: dict[str, Integrator] = {}
+
+
+def register(cls: type[Integrator]) -> type[Integrator]:
+    """Class decorator: make an integrator known by its name."""
+    if cls.name in INTEGRATORS and type(INTEGRATORS[cls.name]) is not cls:
+        raise ValueError(f"an integrator named {cls.name!r} is already registered")
+    INTEGRATORS[cls.name] = cls()
+    return cls
+
+
+def get(name: str) -> Integrator:
+    try:
+        return INTEGRATORS[name]
+    except (KeyError, TypeError):
+        raise InputError(f"unknown integrator {name!r}; choose one of: {', '.join(INTEGRATORS)}", "integrator") from None
+
+
+def default_for(switch: str) -> str:
+    """The integrator a switch runs with when none is named."""
+    for name, integrator in INTEGRATORS.items():
+        if switch in integrator.default_for:
+            return name
+    raise InputError(f"no integrator is registered as the default for the {switch!r} switch", "switch")
+
+
+# ----------------------------------------------------------------------------------------------
+# Linear stability regions of explicit one-step methods
+
+
+def rk4_amplification(z):
+    return np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
+
+
+def _first_exit(theta: np.ndarray, amplification: Callable) -> np.ndarray:
+    """|z| at which the ray z = r e^{i theta} from 0 first leaves the stability region (fine scan,
+    then bisection). 0 for rays into the right half-plane, where |R(z)| > 1 at once."""
+    r = np.linspace(0.0, 6.0, 601)[1:]
+    inside = amplification(r[None, :] * np.exp(1j * theta)[:, None]) <= 1 + 1e-12
+    first_out = np.where(inside.all(axis=1), r.size, np.argmin(inside, axis=1))
+    lo = np.where(first_out > 0, r[np.maximum(first_out - 1, 0)], 0.0)
+    hi = r[np.minimum(first_out, r.size - 1)]
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        ok = amplification(mid * np.exp(1j * theta)) <= 1 + 1e-12
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return np.where(first_out == 0, 0.0, lo)
+
+
+@functools.lru_cache(maxsize=16)
+def stability_region(amplification: Callable):
+    """The stable radius along each direction of the left half-plane (and the imaginary axis)."""
+    theta = np.linspace(np.pi / 2, 3 * np.pi / 2, 4001)
+    return theta, _first_exit(theta, amplification)
+
+
+def max_stable_dt(eigenvalues: np.ndarray, amplification: Callable = rk4_amplification) -> np.ndarray:
+    """Largest dt with every mode inside the stability region, per sample: min over modes of the
+    region's radius along the mode's direction over |lambda| (0 if a mode grows, Re lambda > 0)."""
+    lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
+    size = np.abs(lam)
+    theta = np.mod(np.angle(lam), 2 * np.pi)
+    radius = np.interp(theta, *stability_region(amplification), left=0.0, right=0.0)
+    # Modes at 0 (the free-floating bases, conserved integrals) limit nothing.
+    tiny = size <= 1e-9 * np.maximum(size.max(axis=1, keepdims=True), 1e-300)
+    with np.errstate(divide="ignore"):
+        limit = np.where(tiny, np.inf, radius / np.where(tiny, 1.0, size))
+    return limit.min(axis=1)

@@ -1,0 +1,105 @@
+"""`simulate`: the validated, jitted entry point of a run, on one parameter set or a batch.
+
+It checks every setting and the step against the linearised loop before anything is traced, casts
+the parameters to the configuration's dtype, and puts the batch on the devices (`devices.run`).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from coopjax import devices, objectives, scenarios, stability
+from coopjax.config import Config, check_every, record_size
+from coopjax.errors import InputError
+from coopjax.integration import Solution, Trajectory, batched_leaves, integrate
+from coopjax.params import Params, as_batched
+
+
+class Run(NamedTuple):
+    """One run's static settings as a hashable callable: params (batched) -> Solution."""
+
+    config: Config
+    every: int | None = None
+    checkpoint: bool | str = True
+    unroll: int = 1
+
+    def metric_set(self) -> objectives.MetricSet:
+        c = self.config
+        return objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps)
+
+    def __call__(self, params: Params) -> Solution:
+        return integrate(params, self.config, self.metric_set(), every=self.every, checkpoint=self.checkpoint,
+                         unroll=self.unroll)
+
+
+class MetricsOf(NamedTuple):
+    """A run's metrics only, as a hashable callable (what sweeps and the tuner evaluate)."""
+
+    config: Config
+    checkpoint: bool | str = True
+
+    def __call__(self, params: Params):
+        return Run(self.config, checkpoint=self.checkpoint)(params).metrics
+
+
+def metrics_of(config: Config, checkpoint: bool | str = True) -> MetricsOf:
+    return MetricsOf(config, checkpoint)
+
+
+def memory_limit() -> int:
+    """Half of this machine's physical memory, in bytes: the most one table or record may take."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30
+
+
+def simulate(params: Params, config: Config | str = "carry", *, every: int | None = None, checkpoint: bool | str = True,
+             unroll: int = 1, check_dt: bool = True, **settings) -> Solution:
+    """Simulate one parameter set or a batch of them (leaves with a trailing batch axis).
+
+    Args:
+      params: from `make_params`; unbatched or with batch shape (B,).
+      config: a `Config`, or a scenario name ("paper", "carry", or any registered one).
+      every: record the state and signals every this many steps; None keeps only metrics.
+      checkpoint: under reverse-mode differentiation, True rematerialises each step; "nested" also
+        checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n)); False stores everything.
+      check_dt: refuse a step beyond the stability limit of the linearised loop.
+      **settings: any `Config` field, e.g. `switch="smooth"`, `integrator="rk4"`, `dt=2e-3`, `T=1.0`.
+
+    Returns a `Solution`. Bad static input raises InputError before anything is traced; a sample
+    that diverges is flagged in `metrics.finite` and `metrics.t_diverged` and never raises.
+    """
+    if not isinstance(params, Params):
+        raise InputError(f"params must be a Params from make_params, got {type(params).__name__}", "params")
+    config = Config.of(config, **settings).validate()
+    check_every(config, every)
+    if checkpoint not in (True, False, "nested"):
+        raise InputError(f"checkpoint is {checkpoint!r}: choose True, False or 'nested'", "checkpoint")
+    if isinstance(unroll, bool) or not isinstance(unroll, (int, np.integer)) or unroll < 1:
+        raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
+    params = config.cast(params)
+    if check_dt:
+        stability.check_step(params, config)
+    batched, added = as_batched(params)
+    if every is not None:
+        size = record_size(config, every, int(np.prod(batched.batch_shape)))
+        if size > memory_limit():
+            raise InputError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
+                             f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often "
+                             "(a larger every) or run a shorter T", "every")
+    solution = devices.run(Run(config, every, checkpoint, unroll), batched, batched=batched_leaves)
+    if added:
+        squeeze = lambda x: x[..., 0]
+        trajectory = solution.trajectory
+        if trajectory is not None:
+            trajectory = Trajectory(trajectory.t, squeeze(trajectory.y), jax.tree_util.tree_map(squeeze, trajectory.aux))
+        solution = Solution(jax.tree_util.tree_map(squeeze, solution.metrics), squeeze(solution.y_final), trajectory)
+    return solution
+
+
+__all__ = ["MetricsOf", "Run", "memory_limit", "metrics_of", "simulate"]
