@@ -41,7 +41,7 @@ def _speed_update(peak, obs, p, ctx):
     return jnp.maximum(peak, jnp.abs(obs.y[model.STATE_NAMES.index("v_o")]))
 
 
-BODY_SPEED = objectives.Metric("body_speed", "m/s", "largest |v_o| over the run", lambda b, d: jnp.zeros(tuple(b), d),
+BODY_SPEED = objectives.Metric("body_speed", "m/s", "largest |v_o| over the run", lambda b, d, ctx: jnp.zeros(tuple(b), d),
                                _speed_update, lambda peak, ctx: peak)
 
 

@@ -201,7 +201,9 @@ def substep(ps, rows: Rows, clock: Clock, h, contact, scenario, options):
         return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (fs[0].F, fs[1].F)
 
     tableau = (jnp.asarray(RK4_A, h.dtype), jnp.asarray(RK4_B, h.dtype))
-    zero = jax.tree_util.tree_map(jnp.zeros_like, rows)
+    # 0 x rows rather than zeros: under jvp and vmap the stage scan's carry then has its tangents and
+    # batch axes from the start, and the scan is traced once instead of until they settle.
+    zero = jax.tree_util.tree_map(lambda x: 0.0 * x, rows)
     (_, total), F = jax.lax.scan(stage, (zero, zero), tableau)
     return _axpy(rows, h / 6, total), (F[0][0], F[1][0])
 

@@ -67,6 +67,14 @@ def batched_leaves(solution) -> "Solution":
     return flags
 
 
+def _zero_from(params: Params) -> jax.Array:
+    """0 per sample (B,), computed from every parameter of that sample (a non-finite one gives NaN)."""
+    total = 0.0
+    for leaf in jax.tree_util.tree_leaves(params):
+        total = total + (leaf.reshape((-1,) + params.batch_shape).sum(0) if leaf.ndim > len(params.batch_shape) else leaf)
+    return 0.0 * total
+
+
 def step(params: Params, y: jax.Array, t, settings: Settings) -> jax.Array:
     """The pure closed-loop step of the configured integrator: state at t -> state at t + dt."""
     integrator = INTEGRATORS[settings.method]
@@ -122,7 +130,15 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
         carry = jax.lax.scan(block, carry, jnp.arange(n_blocks, dtype=jnp.int32))[0]
         return steps(carry, k0 + n_blocks * size, tail) if tail else carry
 
-    carry = (model.init_state(params), metrics.init(batch, dtype), jnp.zeros(batch, bool), jnp.full(batch, jnp.inf, dtype))
+    # The initial carry is made to depend on the parameters (by adding a zero that does): under jvp
+    # or vmap, scan then sees tangents and batch axes in its carry from the start. Otherwise it
+    # traces its body again until they settle, and every scan inside it as often: that made the
+    # gradient's tracing take several seconds.
+    anchor = _zero_from(params)
+    start = (model.init_state(params), metrics.init(batch, dtype))
+    start = jax.tree_util.tree_map(lambda x: x + anchor.astype(x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+                                   start)
+    carry = (*start, jnp.zeros(batch, bool), jnp.full(batch, jnp.inf, dtype) + anchor)
     if every is None:
         carry = run(carry, 0, n)
         records = None

@@ -48,7 +48,7 @@ class Context(NamedTuple):
 class Metric:
     """One per-sample result of a run.
 
-    `init(batch_shape, dtype)` -> the accumulator (any pytree of arrays);
+    `init(batch_shape, dtype, ctx)` -> the accumulator (any pytree of arrays);
     `update(acc, obs, params, ctx)` -> the accumulator after sample `obs` (an `Observation`);
     `finalize(acc, ctx)` -> the value, shape of the batch.
     `parameters` are any the metric reads that the model does not have (declared with it).
@@ -57,7 +57,7 @@ class Metric:
     name: str
     unit: str
     doc: str
-    init: Callable[[tuple, Any], Any]
+    init: Callable[[tuple, Any, Context], Any]
     update: Callable[[Any, Observation, Params, Context], Any]
     finalize: Callable[[Any, Context], jax.Array]
     parameters: Mapping[str, Spec] = dataclasses.field(default_factory=dict)
@@ -160,7 +160,7 @@ class MetricSet(NamedTuple):
         return Context(self.scenario, self.dt, self.n_steps)
 
     def init(self, batch_shape, dtype):
-        return {n: METRICS[n].init(batch_shape, dtype) for n in self.names}
+        return {n: METRICS[n].init(batch_shape, dtype, self.context) for n in self.names}
 
     def update(self, acc, obs: Observation, params: Params):
         ctx = self.context

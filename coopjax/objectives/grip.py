@@ -22,30 +22,39 @@ F_MAX = {"F_max": Spec(15.0, "N", False, "finite", "upper force band of the crus
 
 
 def _counted(reached, obs, params, ctx):
-    """Per robot, whether this sample counts in the grip window, and the reached flags after it."""
+    """Per robot, whether this sample counts in the grip window, and the reached flags after it
+    (kept only for a scenario with `after_reach`: in the scan's carry they cost memory traffic)."""
     F = obs.aux.F
-    now = jnp.maximum(reached, (F >= params.F_lim).astype(F.dtype))
     in_grip = ctx.inside("grip", obs.k)
-    if ctx.scenario.after_reach:
-        return in_grip & (now > 0), now
-    return jnp.broadcast_to(in_grip, F.shape), now
+    if not ctx.scenario.after_reach:
+        return jnp.broadcast_to(in_grip, F.shape), None
+    now = jnp.maximum(reached, (F >= params.F_lim).astype(F.dtype))
+    return in_grip & (now > 0), now
 
 
 def _robots(batch_shape, dtype, value):
     return jnp.full((2,) + tuple(batch_shape), value, dtype)
 
 
-# --- min_grip: its accumulator is (least force, largest force, reached flags), each (2, B)
+def _reached(batch_shape, dtype, ctx):
+    return _robots(batch_shape, dtype, 0.0) if ctx.scenario.after_reach else None
 
 
-def _min_init(batch_shape, dtype):
-    return (_robots(batch_shape, dtype, jnp.inf), _robots(batch_shape, dtype, -jnp.inf), _robots(batch_shape, dtype, 0.0))
+# --- min_grip: its accumulator is (least force, largest force, reached flags), each (2, B); the last
+# two only with after_reach (a robot that never reaches F_lim reports its peak).
+
+
+def _min_init(batch_shape, dtype, ctx):
+    peak = _robots(batch_shape, dtype, -jnp.inf) if ctx.scenario.after_reach else None
+    return (_robots(batch_shape, dtype, jnp.inf), peak, _reached(batch_shape, dtype, ctx))
 
 
 def _min_update(acc, obs, params, ctx):
     least, peak, reached = acc
     F = obs.aux.F
     counted, now = _counted(reached, obs, params, ctx)
+    if now is None:
+        return (jnp.where(counted, jnp.minimum(least, F), least), peak, reached)
     F_counted = F
     if ctx.scenario.after_reach:
         # The force passed through F_lim inside the step that first reaches it, so the exact minimum
@@ -61,6 +70,8 @@ def _min_finalize(acc, ctx):
     least, peak, _ = acc
     if ctx.count("grip") == 0:
         return jnp.full(least.shape[1:], jnp.nan, least.dtype)
+    if peak is None:
+        return least.min(0)
     # A robot that never reached F_lim (only possible with after_reach) reports its peak instead.
     return jnp.where(jnp.isinf(least), peak, least).min(0)
 
@@ -78,21 +89,21 @@ def _peak_update(peak, obs, params, ctx):
 
 
 PEAK_GRIP = register(Metric("peak_grip", "N", "largest grip force over the whole run, located impacts included",
-                            lambda b, d: _robots(b, d, -jnp.inf), _peak_update, lambda peak, ctx: peak.max(0)))
+                            lambda b, d, ctx: _robots(b, d, -jnp.inf), _peak_update, lambda peak, ctx: peak.max(0)))
 
 
 # --- slip and crush: sums over the grip window, with the reached flags for after_reach
 
 
 def _window_sum(excess):
-    def init(batch_shape, dtype):
-        return jnp.zeros(tuple(batch_shape), dtype), _robots(batch_shape, dtype, 0.0)
+    def init(batch_shape, dtype, ctx):
+        return jnp.zeros(tuple(batch_shape), dtype), _reached(batch_shape, dtype, ctx)
 
     def update(acc, obs, params, ctx):
         total, reached = acc
         counted, now = _counted(reached, obs, params, ctx)
         term = jnp.where(counted, excess(obs.aux.F, params) ** 2, 0.0).sum(0)
-        return total + term, now
+        return total + term, reached if now is None else now
 
     def finalize(acc, ctx):
         n = ctx.count("grip")
@@ -123,4 +134,4 @@ def _impact_finalize(total, ctx):
 
 
 IMPACT = register(Metric("impact", "N^2", "as crush, over the rest of the run after the grip window (release)",
-                         lambda b, d: jnp.zeros(tuple(b), d), _impact_update, _impact_finalize, parameters=F_MAX))
+                         lambda b, d, ctx: jnp.zeros(tuple(b), d), _impact_update, _impact_finalize, parameters=F_MAX))

@@ -20,4 +20,4 @@ def _finalize(total, ctx):
 
 
 RMS_LAG = register(Metric("rms_lag", "m", "RMS of x_ref - x_r over the lag window and both robots",
-                          lambda b, d: jnp.zeros(tuple(b), d), _update, _finalize))
+                          lambda b, d, ctx: jnp.zeros(tuple(b), d), _update, _finalize))
