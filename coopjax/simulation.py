@@ -7,6 +7,7 @@ the parameters to the configuration's dtype, and puts the batch on the devices (
 from __future__ import annotations
 
 import os
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -50,6 +51,11 @@ def metrics_of(config: Config, checkpoint: bool | str = True) -> MetricsOf:
     return MetricsOf(config, checkpoint)
 
 
+def _differentiated(params: Params) -> bool:
+    """Whether jvp, grad or linearize is tracing these parameters (vmap and jit are fine)."""
+    return any(any(s in type(x).__name__ for s in ("JVP", "Linearize")) for x in jax.tree_util.tree_leaves(params))
+
+
 def memory_limit() -> int:
     """Half of this machine's physical memory, in bytes: the most one table or record may take."""
     try:
@@ -83,6 +89,11 @@ def simulate(params: Params, config: Config | str = "carry", *, every: int | Non
     if isinstance(unroll, bool) or not isinstance(unroll, (int, np.integer)) or unroll < 1:
         raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
     params = config.cast(params)
+    if config.switch == "hard" and config.method == "rk4" and _differentiated(params):
+        warnings.warn("differentiating the hard switch under plain RK4 differentiates its chatter across F = F_lim: "
+                      "the derivatives are noise (often NaN or huge). Use integrator='filippov' (the default for the hard "
+                      "switch), whose derivatives are those of the sliding motion (docs/model.md, 'Derivatives')",
+                      RuntimeWarning, stacklevel=2)
     if check_dt:
         stability.check_step(params, config)
     batched, added = as_batched(params)

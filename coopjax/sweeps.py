@@ -15,6 +15,7 @@ results are gathered with `process_allgather`, and process 0 writes them.
 from __future__ import annotations
 
 import dataclasses
+import io as io_module
 import json
 import math
 import os
@@ -321,9 +322,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
             size = min((k + 1) * chunk, spec.n) - k * chunk
             results[k] = gathered[p][:size]
             if parts is not None and pid == 0:
-                with atomic_path(part_path(parts, k)) as tmp:
-                    with open(tmp, "wb") as f:
-                        np.save(f, results[k])
+                save_array(part_path(parts, k), results[k])
             bar.update(size)
     bar.close()
 
@@ -372,6 +371,16 @@ def _load_part(parts: str, k: int, rows: int, width: int):
         pass
     print(f"coopjax: note: {path} is unreadable or incomplete; it is computed again", file=sys.stderr)
     return None
+
+
+def save_array(path: str, array: np.ndarray) -> None:
+    """One .npy file, atomically. Through a buffer: numpy's own file writer reports a short write on
+    a full disk without its errno, and Python's says ENOSPC."""
+    buffer = io_module.BytesIO()
+    np.save(buffer, array)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(buffer.getbuffer())
 
 
 def part_path(parts: str, k: int) -> str:

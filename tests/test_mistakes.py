@@ -365,3 +365,11 @@ def test_help_and_readme_agree():
                 m = re.search(re.escape(s) + r" ([0-9][0-9.e-]*)\]", block)
                 if m and isinstance(a.default, (int, float)) and not isinstance(a.default, bool):
                     assert float(m.group(1)) == float(a.default), (name, s, m.group(1), a.default)
+
+
+def test_tune_pareto_without_cma_is_refused_before_any_work(fresh_dir, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "cma", None)  # as if it were not installed
+    assert cli.main(["tune", "--pareto"]) == 2
+    err = capsys.readouterr().err
+    assert "CMA-ES" in err and "pip install" in err and err.count("\n") == 1, err
+    assert list(fresh_dir.iterdir()) == []

@@ -21,7 +21,7 @@ def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh
     out = capsys.readouterr().out
     assert code == 0, out
     assert "holds >= F_lim" in out
-    result = json.load(open("tuned.json"))  # standard JSON: a parser that refuses NaN reads it
+    result = json.loads(open("tuned.json").read(), parse_constant=lambda c: pytest.fail(f"{c} is not standard JSON"))
     assert set(result["params"]) == {"K_GP", "K_GI", "tau", "G_e"}
     assert result["judge"]["dt"] == pb.JUDGE_DT and result["judge"]["integrator"] == "filippov"
     # The same two sets through the Python API, in one batch as the CLI does: Table 1's gains lose
@@ -49,3 +49,25 @@ def test_the_race_gives_each_tuner_the_reference_clock_and_validates_their_choic
             assert times == sorted(times) and values == sorted(values, reverse=True)  # running minima
             assert all(t <= row["budget_s"] + 5.0 for t in times)  # nobody ran far past the shared clock
     assert set(result["summary"]) >= set(TUNERS)
+
+
+def test_a_full_disk_at_the_end_keeps_the_checkpoint_and_resume_writes_the_results(fresh_dir, capsys, monkeypatch):
+    import errno
+
+    from tuning import cli as tune_cli
+
+    args = ["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
+            "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--mode", "forward", "--quiet"]
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(tune_cli, "write_json", full)
+        assert cli.main(args) == 1
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("coopjax")]
+    assert len(lines) == 1 and "no space left" in lines[0] and "--resume" in lines[0], err
+    assert sorted(p.name for p in fresh_dir.iterdir()) == ["tuned.json.ckpt"]  # no result, no figure
+    assert cli.main(args + ["--resume"]) == 0
+    assert sorted(p.name for p in fresh_dir.iterdir()) == ["tuned.json", "tuned_history.png", "tuned_traces.png"]

@@ -81,7 +81,8 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
             if options:
                 pick = preferred([v for v, _ in options])
                 chosen[name] = options[pick][1]
-                points = [(t, v.score) for t, v, _ in raw[name]] + [(budget_s, options[pick][0].score)]
+                # The handed-over answer counts from the moment the tuner stopped.
+                points = [(t, v.score) for t, v, _ in raw[name]] + [(results[name].elapsed, options[pick][0].score)]
             else:
                 chosen[name], points = None, []
             curves[name] = running_min(points)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import errno
 import importlib
 import sys
-from importlib.metadata import entry_points
 
 from coopjax.cli import interrupts
 from coopjax.errors import InputError
@@ -30,6 +29,8 @@ GROUP = "coopjax.commands"
 
 def commands() -> list:
     """The command modules: the built-in ones, then the registered ones."""
+    from importlib.metadata import entry_points  # here, not at the top: the console script starts faster
+
     found = [importlib.import_module(f"coopjax.cli.{name}") for name in BUILT_IN]
     for point in sorted(entry_points(group=GROUP), key=lambda p: p.name):
         found.append(point.load())

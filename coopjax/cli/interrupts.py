@@ -32,7 +32,7 @@ def account() -> str | None:
     """What a stopped run keeps, in a few words: the command's own account, else the files written."""
     text = _report[0]()
     io = sys.modules.get("coopjax.io")
-    if text is None and io is not None and io.WRITTEN:
+    if text is None and getattr(io, "WRITTEN", None):
         written = list(dict.fromkeys(io.WRITTEN))
         text = f"{', '.join(written)} {'was' if len(written) == 1 else 'were'} written before it"
     return text
@@ -42,8 +42,9 @@ def _stop(signum: int) -> None:
     text = None
     try:
         io = sys.modules.get("coopjax.io")
-        if io is not None:
-            with io.LOCK:  # no rename is half done; nothing new starts
+        lock = getattr(io, "LOCK", None)  # None while the module is still being imported: nothing in flight
+        if lock is not None:
+            with lock:  # no rename is half done; nothing new starts
                 for tmp in list(io.IN_FLIGHT):
                     try:
                         os.unlink(tmp)
@@ -51,12 +52,16 @@ def _stop(signum: int) -> None:
                         pass
                     io.IN_FLIGHT.discard(tmp)
                 text = account()
-        text = text or "nothing was written"
-        name = "interrupted" if signum == signal.SIGINT else "terminated"
-        sys.stderr.write(f"\ncoopjax: {name}; {text}\n")
-        sys.stderr.flush()
+    except Exception as error:  # say so rather than nothing
+        text = f"what was kept is unknown ({type(error).__name__})"
     finally:
-        os._exit(EXIT.get(signum, 128 + signum))
+        name = "interrupted" if signum == signal.SIGINT else "terminated"
+        # Straight to the file descriptor: the main thread may be inside sys.stderr (a progress bar),
+        # and a second writer there raises instead of writing.
+        try:
+            os.write(2, f"\ncoopjax: {name}; {text or 'nothing was written'}\n".encode())
+        finally:
+            os._exit(EXIT.get(signum, 128 + signum))
 
 
 def _watch(fd: int) -> None:

@@ -28,7 +28,7 @@ def add_parser(sub):
                    "over the shared one; `coopjax params` lists the names)")
     config_arguments(p, defaults={"scenario": "paper"})
     p.add_argument("--every", type=int, default=None, help="write every N-th step to the CSV (default: every 10 ms, "
-                   "or every step of a shorter run)")
+                   "or more often to give a short run a hundred rows)")
     p.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv). Columns: t [s]; F_L, F_R "
                    "[N]; gamma_L, gamma_R [1]; w_L, w_R [1]; x_ref_L, x_ref_R [m]; then the 20 states (x_* [m], "
                    "v_* [m/s], q_c [m], Z [N s], Y_e [m s])")
@@ -51,7 +51,8 @@ def run(args) -> int:
     if args.every is not None and args.every > n:
         raise BadInput(f"--every {args.every} is more than the run's {n} steps: nothing would be recorded after "
                        f"t = 0 (use --every <= {n})")
-    every = args.every if args.every is not None else min(n, max(1, int(round(RECORD_EVERY_S / config.dt))))
+    # By default every 10 ms, but at least a hundred records (a short run is recorded at every step).
+    every = args.every if args.every is not None else max(1, min(int(round(RECORD_EVERY_S / config.dt)), n // 100))
     # A plot is drawn from every step (a decimated record can hide an impact's spike); the CSV takes
     # every `every`-th. Without a plot, only what the CSV needs is recorded.
     record = 1 if args.plot is not None else every

@@ -136,8 +136,9 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
     # gradient's tracing take several seconds.
     anchor = _zero_from(params)
     start = (model.init_state(params), metrics.init(batch, dtype))
-    start = jax.tree_util.tree_map(lambda x: x + anchor.astype(x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
-                                   start)
+    start = jax.tree_util.tree_map(
+        lambda x: x + jnp.broadcast_to(anchor, x.shape).astype(x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+        start)
     carry = (*start, jnp.zeros(batch, bool), jnp.full(batch, jnp.inf, dtype) + anchor)
     if every is None:
         carry = run(carry, 0, n)

@@ -52,7 +52,9 @@ class CMAES(Tuner):
             warnings.simplefilter("ignore")
             es = cma.CMAEvolutionStrategy(np.asarray(starts[0]), self.sigma0, options)
         cache = {}
-        fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
+            fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0)
         fun.cache = cache
         return State(es, fun, 0, seed, problem, [])
 
