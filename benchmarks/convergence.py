@@ -1,6 +1,8 @@
-"""Convergence of the hard carry model to its dt -> 0 limit, for `filippov` and plain `rk4`.
+"""Convergence of the hard carry model to its dt -> 0 limit, for `filippov` and plain `rk4`: its values,
+and (with --derivatives) its derivatives.
 
     python -m benchmarks.convergence [--quick] [--out benchmarks/convergence.json] [--plot docs/convergence.png]
+    python -m benchmarks.convergence --derivatives [--n 64] [--out benchmarks/derivatives.json] [--plot docs/derivatives.png]
 
 The limit (docs/model.md, "Step size") is computed two independent ways that must agree within the
 tolerances before anything else counts: `filippov` at dt = 1e-5 and plain `rk4` at dt = 1e-6. Then
@@ -8,6 +10,13 @@ each integrator runs at a ladder of steps, and its error against the limit is re
 (N), peak grip and RMS lag (relative). Also measured: converged carry trajectories per second, for
 `filippov` at its default step against `rk4` at the largest step of the ladder where it meets the
 tolerances on every sample (or its finest step, 1e-5, if none does).
+
+The derivative study compares AD derivatives (forward mode) of min grip, peak grip, RMS lag and the
+grip shortfall with respect to log K_GP, K_GI, tau and G_e, at the default and training steps, with
+central secants of the converged model (filippov at `--ref-dt`, 1e-4 s) at two widths in the log gain,
+1e-2 and 3e-3. An entry counts only where the two secants agree (the limit is smooth there); it
+agrees where |AD - secant| <= 10 % |secant| + 0.01, both as elasticities (derivative over
+max(|value|, 1 N or 1 mm)).
 """
 
 from __future__ import annotations
@@ -20,11 +29,13 @@ import time
 
 import numpy as np
 
+from coopjax.step_check import TOLERANCE as _TOLERANCE
+
 # The accuracy tolerances (docs/model.md): min grip in N, peak and lag relative.
-TOLERANCE = {"min_grip": 0.05, "peak_grip": 0.02, "rms_lag": 0.02}
+TOLERANCE = {name: tol for name, (_, tol) in _TOLERANCE.items()}
 GAIN_SETS = {
     "table1": dict(K_GP=0.5, K_GI=0.1, tau=1.25, G_e=600.0),
-    "holds": dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0),  # issue 11's best known four-gain set
+    "holds": dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0),  # a four-gain set that holds the grip at every mass
 }
 MASSES = (0.5, 1.2, 2.5, 5.0)
 N_RANDOM = 8
@@ -87,17 +98,180 @@ def trajectories_per_second(integrator: str, dt: float, batch: int, repeats: int
     return batch / float(np.median(times))
 
 
+# --- the derivative study
+
+GAINS = ("K_GP", "K_GI", "tau", "G_e")
+OUTPUTS = ("min_grip", "peak_grip", "rms_lag", "shortfall")
+FLOOR = {"min_grip": 1.0, "peak_grip": 1.0, "rms_lag": 1e-3, "shortfall": 1.0}  # N, N, m, N: the elasticity's scale floor
+SHORTFALL_EPS = 0.01  # N: shortfall = sqrt(slip + eps^2) - eps, the tuner's grip constraint
+WIDTHS = (1e-2, 3e-3)  # secant half-widths in log gain
+AGREE = (0.10, 0.01)  # relative, absolute (elasticity)
+STUDY_DTS = (1e-3, 2e-3)  # the default and the training step
+
+
+def derivative_samples(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n (log gains, mass) samples, half of them with heavy masses (2.5-5 kg, where Table 1's gains
+    lose the grip and the constraint is active), each stable at dt = 3e-3 by the linearised check
+    (so both study steps run well inside RK4's region)."""
+    import coopjax as cj
+    from coopjax import stability
+
+    rng = np.random.default_rng(seed)
+    box = {"K_GP": (0.05, 2.0), "K_GI": (0.01, 1.0), "tau": (0.1, 10.0), "G_e": (50.0, 3000.0)}
+    thetas, masses = [], []
+    while len(thetas) < n:
+        gains = {k: float(np.exp(rng.uniform(np.log(a), np.log(b)))) for k, (a, b) in box.items()}
+        low = 2.5 if len(thetas) % 2 == 0 else 0.5
+        mass = float(np.exp(rng.uniform(np.log(low), np.log(5.0))))
+        limit, growth = stability.stable_dt(cj.make_params(**gains, M_b=mass), cj.Config("carry"))
+        if limit[0] >= 3e-3 and growth[0] == 0:
+            thetas.append(np.log([gains[g] for g in GAINS]))
+            masses.append(mass)
+    return np.array(thetas), np.array(masses)
+
+
+def study_outputs(theta, masses, dt):
+    """(N, 4) outputs of the hard carry model at log gains theta (N, 4)."""
+    import jax.numpy as jnp
+
+    import coopjax as cj
+
+    params = cj.make_params(**{g: jnp.exp(theta[:, i]) for i, g in enumerate(GAINS)}, M_b=masses)
+    m = cj.simulate(params, "carry", dt=dt, check_dt=False).metrics
+    shortfall = jnp.sqrt(m.slip + SHORTFALL_EPS**2) - SHORTFALL_EPS
+    return jnp.stack([m.min_grip, m.peak_grip, m.rms_lag, shortfall], axis=1)
+
+
+def ad_derivatives(theta, masses, dt):
+    """Values (N, 4) and forward-mode derivatives (N, 4 outputs, 4 gains) at dt."""
+    import jax
+    import jax.numpy as jnp
+
+    theta, masses = jnp.asarray(theta), jnp.asarray(masses)
+    basis = jnp.eye(len(GAINS))[:, None, :] * jnp.ones_like(theta)[None]
+    f = lambda th: study_outputs(th, masses, dt)
+    values, tangents = jax.jit(jax.vmap(lambda v: jax.jvp(f, (theta,), (v,)), out_axes=(None, 0)))(basis)
+    return np.asarray(values), np.moveaxis(np.asarray(tangents), 0, -1)
+
+
+def secant_derivatives(theta, masses, dt, widths=WIDTHS):
+    """Central secants (len(widths), N, 4 outputs, 4 gains) of the model at dt, all runs in one batch."""
+    N = theta.shape[0]
+    shifted = []
+    for w in widths:
+        for i in range(len(GAINS)):
+            for sign in (1, -1):
+                t = theta.copy()
+                t[:, i] += sign * w
+                shifted.append(t)
+    values = np.asarray(study_outputs(np.concatenate(shifted), np.tile(masses, len(shifted)), dt))
+    values = values.reshape(len(widths), len(GAINS), 2, N, len(OUTPUTS))
+    secants = (values[:, :, 0] - values[:, :, 1]) / (2 * np.asarray(widths)[:, None, None, None])
+    return np.transpose(secants, (0, 2, 3, 1))
+
+
+def compare(ad: np.ndarray, secants: np.ndarray, values: np.ndarray) -> dict:
+    """Elasticities, where the limit is smooth, and where AD agrees with it (module docstring)."""
+    scale = np.maximum(np.abs(values), np.array([FLOOR[o] for o in OUTPUTS]))[:, :, None]
+    wide, narrow = secants[0] / scale, secants[1] / scale
+    smooth = np.abs(wide - narrow) <= 0.02 * np.maximum(np.abs(wide), np.abs(narrow)) + 0.002
+    e = ad / scale
+    agrees = np.abs(e - narrow) <= AGREE[0] * np.abs(narrow) + AGREE[1]
+    wrong_sign = (np.sign(e) != np.sign(narrow)) & (np.abs(narrow) > AGREE[1]) & (np.abs(e) > AGREE[1])
+    return {"ad": e, "reference": narrow, "smooth": smooth, "agrees": agrees, "wrong_sign": wrong_sign & smooth}
+
+
+def derivative_study(n: int, ref_dt: float, dts=STUDY_DTS, log=print) -> dict:
+    import jax
+
+    theta, masses = derivative_samples(n)
+    start = time.perf_counter()
+    ref_values = np.asarray(study_outputs(theta, masses, ref_dt))
+    secants = secant_derivatives(theta, masses, ref_dt)
+    log(f"reference: central secants of filippov at dt = {ref_dt:g} s, widths {WIDTHS} in log gain "
+        f"({time.perf_counter() - start:.0f} s)")
+    result = {"n": n, "ref_dt": ref_dt, "widths": WIDTHS, "agree": AGREE, "gains": GAINS, "outputs": OUTPUTS,
+              "masses": masses.tolist(), "gains_log": theta.tolist(), "rows": [],
+              "machine": {"jax": jax.__version__, "devices": jax.device_count()}}
+    log(f"{'dt [s]':>8} {'output':>10} {'agree':>7} {'entries':>8} {'wrong sign':>11}")
+    for dt in dts:
+        start = time.perf_counter()
+        _, ad = ad_derivatives(theta, masses, dt)
+        c = compare(ad, secants, ref_values)
+        elapsed = time.perf_counter() - start
+        for j, name in enumerate(OUTPUTS + ("all",)):
+            pick = (slice(None), slice(None)) if name == "all" else (slice(None), j)
+            counted = c["smooth"][pick]
+            row = {"dt": dt, "output": name, "entries": int(counted.sum()),
+                   "agree": float(c["agrees"][pick][counted].mean()), "wrong_sign": int(c["wrong_sign"][pick].sum())}
+            result["rows"].append(row)
+            log(f"{dt:8g} {name:>10} {row['agree']:7.1%} {row['entries']:8d} {row['wrong_sign']:11d}")
+        result[f"dt={dt:g}"] = {k: v.tolist() for k, v in c.items()} | {"seconds": elapsed}
+    return result
+
+
+def plot_derivatives(result: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dts = [r["dt"] for r in result["rows"] if r["output"] == "all"]
+    fig, axes = plt.subplots(1, len(dts), figsize=(5.2 * len(dts), 4.8), constrained_layout=True, squeeze=False)
+    colours = dict(zip(OUTPUTS, ("tab:blue", "tab:orange", "tab:green", "tab:red")))
+    for ax, dt in zip(axes[0], dts):
+        c = {k: np.asarray(v) for k, v in result[f"dt={dt:g}"].items() if k != "seconds"}
+        for j, name in enumerate(OUTPUTS):
+            s = c["smooth"][:, j]
+            ax.scatter(c["reference"][:, j][s], c["ad"][:, j][s], s=9, alpha=0.7, color=colours[name], label=name)
+            bad = s & ~c["agrees"][:, j]
+            ax.scatter(c["reference"][:, j][bad], c["ad"][:, j][bad], s=40, facecolors="none", edgecolors="k", lw=0.8)
+        lim = np.nanmax(np.abs(c["reference"][c["smooth"]])) * 1.1
+        ax.plot([-lim, lim], [-lim, lim], "k:", lw=1)
+        ax.set_xscale("symlog", linthresh=0.01)
+        ax.set_yscale("symlog", linthresh=0.01)
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        row = next(r for r in result["rows"] if r["dt"] == dt and r["output"] == "all")
+        ax.set_title(f"AD at dt = {dt:g} s: {row['agree']:.1%} of {row['entries']} agree, {row['wrong_sign']} wrong sign",
+                     fontsize=10)
+        ax.set_xlabel(f"secant of the converged model (dt = {result['ref_dt']:g} s), elasticity")
+        ax.set_ylabel("AD derivative, elasticity")
+        ax.grid(True, alpha=0.3)
+    axes[0][0].legend(fontsize=8, title="circled: disagrees", title_fontsize=8)
+    fig.suptitle(f"Derivatives of the hard carry model: {result['n']} (gain set, mass) samples, d output / d log gain",
+                 fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.convergence", description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="4 random samples, a shorter ladder, no speed figure")
-    parser.add_argument("--out", default="benchmarks/convergence.json")
-    parser.add_argument("--plot", default="docs/convergence.png")
+    parser.add_argument("--out", default=None, help="default benchmarks/convergence.json (derivatives.json)")
+    parser.add_argument("--plot", default=None, help="default docs/convergence.png (derivatives.png)")
     parser.add_argument("--batch", type=int, default=64, help="batch for the trajectories-per-second figure")
+    parser.add_argument("--derivatives", action="store_true", help="the derivative study instead of the value study")
+    parser.add_argument("--n", type=int, default=64, help="derivative study: (gain set, mass) samples (default 64)")
+    parser.add_argument("--ref-dt", type=float, default=1e-4, help="derivative study: the converged model's step")
     args = parser.parse_args(argv)
 
     import jax
 
+    import coopjax as cj
+
+    cj.use_all_cores()
     jax.config.update("jax_enable_x64", True)
+    if args.derivatives:
+        out, plot_path = args.out or "benchmarks/derivatives.json", args.plot or "docs/derivatives.png"
+        result = derivative_study(args.n, args.ref_dt)
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        with open(out, "w") as f:
+            json.dump(result, f)
+        plot_derivatives(result, plot_path)
+        print(f"wrote {out} and {plot_path}")
+        return 0
+    args.out, args.plot = args.out or "benchmarks/convergence.json", args.plot or "docs/convergence.png"
     n_random = 4 if args.quick else N_RANDOM
     columns, names = samples(n_random), labels(n_random)
     ladder = {k: v[:4] if args.quick else v for k, v in LADDER.items()}

@@ -29,7 +29,7 @@ import pandas as pd
 from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
-from coopjax import devices, objectives, stability
+from coopjax import devices, objectives, stability, step_check
 from coopjax.config import Config
 from coopjax.errors import InputError
 from coopjax.io import atomic_path
@@ -38,28 +38,31 @@ from coopjax.simulation import memory_limit, metrics_of
 
 KINDS = ("uniform", "loguniform", "normal", "choice", "grid")
 # Why a sample is not trusted, most basic first. `finite` in the table is 1 only for "ok".
-STATUSES = ("ok", "diverged", "unstable_loop", "step_beyond_limit")
+STATUSES = ("ok", "diverged", "unstable_loop", "step_beyond_limit", "step_artefact")
 BOOKKEEPING = {
     "finite": "1 if trusted (status ok), else 0", "t_diverged": "s (NaN if it did not)",
     "dt_limit": "s, the largest stable step of the linearised loop", "status": "|".join(STATUSES),
 }
+STEP_ERROR = {"step_error": "tolerances: the two-step check's largest disagreement between dt and dt/2 "
+                            "(above 1: step_artefact)"}
 CHUNK_FORMAT = 3  # bumped when a chunk file's layout changes, so --resume never mixes formats
 
 
-def columns_per_sample(config: Config) -> tuple[str, ...]:
-    """The result columns of a sweep table: the configured metrics, then the bookkeeping."""
-    return tuple(config.metrics) + tuple(BOOKKEEPING)
+def columns_per_sample(config: Config, check_step: bool = False) -> tuple[str, ...]:
+    """The result columns of a sweep table: the configured metrics, then the bookkeeping (and the
+    two-step check's column if asked for)."""
+    return tuple(config.metrics) + tuple(BOOKKEEPING) + (tuple(STEP_ERROR) if check_step else ())
 
 
 def column_units(config: Config | None = None) -> dict[str, str]:
     """Every result column's unit: the metrics' own declarations, then the bookkeeping."""
     names = config.metrics if config is not None else tuple(objectives.METRICS)
-    return {"sample": "index", **{n: objectives.METRICS[n].unit for n in names}, **BOOKKEEPING}
+    return {"sample": "index", **{n: objectives.METRICS[n].unit for n in names}, **BOOKKEEPING, **STEP_ERROR}
 
 
 def result_columns() -> tuple[str, ...]:
     """Every column a sweep may add beside the parameters (any registered metric)."""
-    return ("sample",) + tuple(objectives.METRICS) + tuple(BOOKKEEPING)
+    return ("sample",) + tuple(objectives.METRICS) + tuple(BOOKKEEPING) + tuple(STEP_ERROR)
 
 
 class Distribution(NamedTuple):
@@ -163,6 +166,7 @@ class SweepSpec(NamedTuple):
     fixed: tuple = ()  # ((name, value), ...)
     seed: int = 0
     table: tuple = ()  # ((name, values), ...) from a table of parameter sets
+    check_step: bool = False  # the two-step check on every row (coopjax.step_check)
 
     def to_json(self) -> str:
         d = self._asdict()
@@ -175,14 +179,17 @@ class SweepSpec(NamedTuple):
 
     @property
     def columns(self) -> tuple[str, ...]:
-        return columns_per_sample(self.config)
+        return columns_per_sample(self.config, self.check_step)
 
 
-def make_spec(config: Config | str = "carry", n=None, vary=None, fixed=None, seed=0, table=None, **settings) -> SweepSpec:
+def make_spec(config: Config | str = "carry", n=None, vary=None, fixed=None, seed=0, table=None,
+              check_step: bool = False, **settings) -> SweepSpec:
     """Validate and freeze a sweep description; raises InputError on any mistake.
 
     `config` (or a scenario name) with `settings` (any `Config` field) fixes how each sample runs;
     `vary` maps names to distributions, `fixed` names to values, `table` names to columns of values.
+    `check_step` runs every row again at dt / 2 (`coopjax.step_check`): a `step_error` column, and
+    status `step_artefact` where the answers move by more than a tolerance. It triples the cost.
     """
     config = Config.of(config, **settings)
     if config.dtype is None:  # the table must not depend on a global flag at resume time
@@ -219,14 +226,20 @@ def make_spec(config: Config | str = "carry", n=None, vary=None, fixed=None, see
     if not dists and not table:
         raise InputError(f"nothing varies, so all {n} samples would be the same run: vary a parameter "
                          "(or give a table of sets), or simulate one run", "vary")
-    columns = len(dists) + len(table) + len(columns_per_sample(config)) + 1
+    if not isinstance(check_step, bool):
+        raise InputError(f"check_step is {check_step!r}: True or False", "check_step")
+    missing = [m for m in step_check.METRICS if m not in config.metrics]
+    if check_step and missing:
+        raise InputError(f"the two-step check compares {', '.join(step_check.METRICS)}: add {missing[0]} to the metrics",
+                         "check_step")
+    columns = len(dists) + len(table) + len(columns_per_sample(config, check_step)) + 1
     if n * columns * 8 > memory_limit():
         raise InputError(f"n = {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
                          f"more than half of this machine's memory ({memory_limit() / 2**30:.3g} GiB); "
                          f"at most {memory_limit() // (columns * 8):,} samples per sweep here", "n")
     base = make_params(**fixed)  # every fixed value checked now, before any file is written
     spec = SweepSpec(config, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed),
-                     tuple((k, tuple(v)) for k, v in table.items()))
+                     tuple((k, tuple(v)) for k, v in table.items()), check_step)
     sample_values(spec)  # every drawn value checked now too
     _check_dtype_range(spec, base)
     return spec
@@ -272,8 +285,15 @@ def evaluate(spec: SweepSpec, values: dict[str, np.ndarray]) -> np.ndarray:
     # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of unknown
     # cause (`t_diverged` says when any of them blew up).
     status = np.select([growth > 0, config.dt > limit, ~finite], [2, 3, 1], 0)
+    extra = []
+    if spec.check_step:
+        fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block_size(spec.n))
+        error = step_check.step_error({n: m[:, names.index(n)] for n in step_check.METRICS},
+                                      {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS})
+        status = np.where((status == 0) & step_check.artefacts(error), STATUSES.index("step_artefact"), status)
+        extra = [error]
     m[:, names.index("finite")] = status == 0
-    return np.column_stack([m, limit, status])
+    return np.column_stack([m, limit, status] + extra)
 
 
 def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False, progress: bool = False):
@@ -412,11 +432,11 @@ def prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunk
         except OSError as error:
             raise InputError(f"{manifest} is not readable ({error.strerror}): fix its permissions or delete {parts}",
                              "resume") from None
+        if not os.access(parts, os.W_OK):
+            raise InputError(f"{parts} is not writable: fix its permissions or delete it", "resume")
         if saved != identity:
             raise InputError(f"{parts} belongs to a different sweep (other options or chunk size): "
                              "use the same options, or delete it", "resume")
-        if not os.access(parts, os.W_OK):
-            raise InputError(f"{parts} is not writable: fix its permissions or delete it", "resume")
         return np.array([os.path.exists(part_path(parts, k)) for k in range(n_chunks)])
     if os.path.exists(parts) and not os.path.isdir(parts):
         raise InputError(f"{parts} exists and is not a folder: remove it", "out")

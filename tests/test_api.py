@@ -29,6 +29,7 @@ def test_paper_claim_grip_stays_at_or_above_F_lim_once_reached():
     assert bool(sol.metrics.finite)
 
 
+@pytest.mark.slow
 def test_surrogates_tend_to_the_hard_model_as_widths_shrink():
     hard = cj.simulate(cj.make_params(), "paper", switch="hard", dt=1e-4, every=10)
     gaps = []
@@ -39,6 +40,7 @@ def test_surrogates_tend_to_the_hard_model_as_widths_shrink():
     assert gaps[0] > 2 * gaps[1] > 4 * gaps[2], gaps
 
 
+@pytest.mark.slow
 def test_straight_through_is_hard_forward_and_has_gradients():
     p = cj.make_params()
     hard = cj.simulate(p, "paper", switch="hard", integrator="rk4", T=0.5).metrics
@@ -57,6 +59,7 @@ def test_bilateral_contact_pulls_where_unilateral_lets_go():
     assert bilateral.min() < -1.0
 
 
+@pytest.mark.slow
 def test_use_all_cores_shards_a_batch_and_changes_only_round_off(tmp_path):
     """`coopjax.use_all_cores(2)` in a fresh process: 5 samples (padded to 6 over 2 devices) give the
     metrics and final states of this one-device process, to round-off: a sample's SIMD lane (a full

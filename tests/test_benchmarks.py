@@ -6,9 +6,12 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.mark.slow
 def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     out, plot = tmp_path / "results.json", tmp_path / "scaling.png"
     run = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--max-devices", "1", "--Bs", "2", "--T", "0.05", "--repeats", "1",

@@ -21,7 +21,9 @@ def test_simulate_writes_csv_and_plot(fresh_dir, capsys):
     F_L = data[:, header.index("F_L")]
     assert data[-1, 0] == pytest.approx(3.0) and F_L.max() > 10.0
     assert os.path.getsize("fig.png") > 10_000
-    assert "wrote run.csv and fig.png" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "wrote run.csv and fig.png" in out
+    assert "lag" not in out  # the paper scenario has no lag window: no lag is reported
 
 
 def test_real_process_exit_code_and_no_traceback(fresh_dir):

@@ -28,7 +28,8 @@ def test_total_momentum_is_conserved_over_carry(switch, integrator):
 # Batches and single runs compile to different XLA programs, so they round differently. Where the
 # integration is converged those differences stay at round-off; plain RK4 on the hard carry is not
 # (it chatters on F = F_lim) and the loop amplifies them. See docs/model.md, "Step size".
-@pytest.mark.parametrize("scenario, switch, dt", [("carry", "hard", 1e-3), ("paper", "hard", 1e-3)])
+@pytest.mark.parametrize("scenario, switch, dt", [("carry", "hard", 1e-3),
+                                                  pytest.param("paper", "hard", 1e-3, marks=pytest.mark.slow)])
 def test_batch_of_eight_equals_eight_single_runs(scenario, switch, dt):
     rng = np.random.default_rng(0)
     values = dict(

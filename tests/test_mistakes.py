@@ -132,6 +132,8 @@ CASES = [
     ("plot-sweep-unreadable", {"t.csv": SWEEP_TABLE}, ["plot-sweep", "t.csv"], {"chmod": "t.csv"}, "not readable"),
     ("sweep-parts-unreadable", {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
      ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"], {"chmod": "s.csv.parts/manifest.json"}, "not readable"),
+    ("sweep-parts-read-only", {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
+     ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"], {"chmod": "s.csv.parts"}, "is not writable"),
     # tune
     ("tune-mode", {}, ["tune", "--mode", "sideways"], {}, "--mode must be one of auto, forward, reverse"),
     ("tune-masses-kind", {}, ["tune", "--masses", "normal:1:2"], {}, "--masses expects"),

@@ -44,6 +44,7 @@ def test_blend_model_agrees_with_scipy_radau():
     assert error < 1e-4, error
 
 
+@pytest.mark.slow
 def test_rk4_converges_with_order_four():
     # Wider surrogates keep the loop smooth enough to be in RK4's asymptotic regime; steps of
     # 1/2^k put the profile's kinks (t = 1 s) on step boundaries.
@@ -56,6 +57,7 @@ def test_rk4_converges_with_order_four():
     assert 3.7 < order < 4.4, (order, errors)
 
 
+@pytest.mark.slow
 def test_blend_surrogate_tracks_the_hard_sliding_motion_where_smooth_substitution_does_not():
     """The sigmoid substitution of the smooth surrogates does not converge to the hard model on F = F_lim.
 

@@ -68,11 +68,13 @@ def test_draws_follow_their_distributions_and_grids_are_factorial():
     assert big["y"].mean() == pytest.approx(2, abs=0.01) and big["y"].std() == pytest.approx(0.5, abs=0.01)
 
 
+@pytest.mark.slow
 def test_same_seed_same_table_whatever_the_chunk_size():
     spec = sweeps.make_spec("paper", 30, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, T=1.0, seed=3)
     assert_same_table(sweeps.run(spec, chunk=7), sweeps.run(spec, chunk=30))
 
 
+@pytest.mark.slow
 def test_one_and_two_devices_give_the_identical_table_under_xla_defaults(tmp_path):
     """Also the suite's run of the default compile path (the other tests use faster-compiling flags).
     Every device runs the same block of samples; the one-device program is compiled unpartitioned,
@@ -84,6 +86,7 @@ def test_one_and_two_devices_give_the_identical_table_under_xla_defaults(tmp_pat
     assert_same_table(read(tmp_path / "d1.csv"), read(tmp_path / "d2.csv"))
 
 
+@pytest.mark.slow
 def test_resume_after_kill_9_gives_the_uninterrupted_table(tmp_path):
     whole = sweep_cli("--n", "24", "--chunk", "2", "--out", "whole.csv", cwd=tmp_path)
     assert whole.returncode == 0, whole.stderr

@@ -54,7 +54,7 @@ def point():
     return masses, mult
 
 
-# Forward mode is marked slow: test_gradients.py checks both modes on the hard model in CI.
+# Forward mode is marked slow: test_gradients.py checks forward mode on the hard model in CI.
 @pytest.mark.parametrize("mode", [pytest.param("forward", marks=pytest.mark.slow), "reverse"])
 def test_gradients_of_the_constrained_objective_match_central_differences(point, mode):
     masses, mult = point
@@ -81,6 +81,7 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
             np.testing.assert_allclose(getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name)
 
 
+@pytest.mark.slow
 def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     whole = driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=str(tmp_path / "whole.ckpt"))
     cut = str(tmp_path / "cut.ckpt")
@@ -102,6 +103,7 @@ def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     assert np.any(np.asarray(whole.state.mult.lam) > 0)
 
 
+@pytest.mark.slow
 def test_a_start_whose_step_blows_up_goes_back_halfway_and_the_others_go_on(monkeypatch):
     seen = []
     real = Evaluator.__call__

@@ -51,6 +51,7 @@ def test_the_race_gives_each_tuner_the_reference_clock_and_validates_their_choic
     assert set(result["summary"]) >= set(TUNERS)
 
 
+@pytest.mark.slow
 def test_a_full_disk_at_the_end_keeps_the_checkpoint_and_resume_writes_the_results(fresh_dir, capsys, monkeypatch):
     import errno
 

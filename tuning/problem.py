@@ -296,7 +296,9 @@ class Verdict(NamedTuple):
     impact: float  # N^2, crush after the grip window (release), largest over masses
     objective: float  # N: peak_grip + w_lag * rms_lag in mm (the hard maximum over masses)
     finite: bool
-    holds: bool  # min_grip >= F_lim - HOLD_TOLERANCE at every mass
+    holds: bool  # min_grip >= F_lim - HOLD_TOLERANCE at every mass, and no step artefact
+    step_error: float  # the two-step check's worst disagreement over masses, in tolerances (NaN: not checked)
+    step_artefact: bool  # some mass's answer moved by more than a tolerance between dt and dt/2
     per_mass: dict  # name -> list over masses
 
     @property
@@ -316,10 +318,12 @@ def judge_config(dt: float = JUDGE_DT) -> Config:
 
 
 def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Params | None = None, w_lag: float = 1.0,
-          dt: float = JUDGE_DT, progress: bool = False):
+          dt: float = JUDGE_DT, progress: bool = False, check_step: bool = True):
     """Judge one parameter set (or a list of them) with the hard model on `masses`, in float64.
 
-    All runs go through the sweep runner, so they are sharded over every local device.
+    All runs go through the sweep runner, so they are sharded over every local device. With
+    `check_step` (the default) every run is repeated at dt / 2 (`coopjax.step_check`): a set whose
+    answers move by more than the accuracy tolerances is a step artefact, and does not hold.
     """
     if not jax.config.jax_enable_x64:
         raise InputError("judging runs in float64: call jax.config.update('jax_enable_x64', True) first")
@@ -330,7 +334,7 @@ def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Param
     fixed = _fixed_from(base, set().union(*map(set, sets)))
     table = {n: np.repeat([float(g[n]) for g in sets], M) for n in sets[0]}
     table["M_b"] = np.tile(masses, G)
-    spec = sweeps.make_spec(judge_config(dt), None, {}, fixed, 0, table)
+    spec = sweeps.make_spec(judge_config(dt), None, {}, fixed, 0, table, check_step=check_step)
     columns = sweeps.run(spec, chunk=max(G * M, 1), progress=progress)
     F_lim = float(np.asarray((base or make_params()).F_lim).min())
     verdicts = [_verdict({k: columns[k][g * M:(g + 1) * M] for k in spec.columns}, w_lag, F_lim) for g in range(G)]
@@ -338,13 +342,13 @@ def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Param
 
 
 def select(candidates: list[dict], masses, base: Params | None = None, w_lag: float = 1.0,
-           dt: float = JUDGE_DT) -> tuple[int, list[Verdict]]:
+           dt: float = JUDGE_DT, check_step: bool = True) -> tuple[int, list[Verdict]]:
     """The candidate a hard-model validation prefers: it holds the grip at every validation mass and
     then has the lowest objective (ties: the earlier candidate). Returns its index and all verdicts.
 
     This is model selection, not judging: validation masses are never the held-out ones.
     """
-    verdicts = judge(list(candidates), masses, base, w_lag, dt)
+    verdicts = judge(list(candidates), masses, base, w_lag, dt, check_step=check_step)
     return preferred(verdicts), verdicts
 
 
@@ -376,12 +380,15 @@ def _fixed_from(base: Params | None, tuned: set) -> dict[str, float]:
 
 
 def _verdict(m: dict, w_lag: float, F_lim: float) -> Verdict:
-    finite = bool(np.all(m["finite"] > 0.5))
+    # A step artefact ran to the end: its values are shown, and it does not hold.
+    finite = bool(np.all((m["finite"] > 0.5) | (np.asarray(m["status"]) == "step_artefact")))
 
     def worst(x, pick):
         return float(pick(x)) if finite else float("nan")
 
     min_grip, peak, lag = worst(m["min_grip"], np.min), worst(m["peak_grip"], np.max), worst(m["rms_lag"], np.max)
+    checked = "step_error" in m
+    artefact = bool(np.any(m["status"] == "step_artefact")) if checked else False
     return Verdict(
         min_grip=min_grip,
         peak_grip=peak,
@@ -391,7 +398,9 @@ def _verdict(m: dict, w_lag: float, F_lim: float) -> Verdict:
         impact=worst(m["impact"], np.max),
         objective=peak + w_lag * 1e3 * lag,
         finite=finite,
-        holds=finite and min_grip >= F_lim - HOLD_TOLERANCE,
+        holds=finite and min_grip >= F_lim - HOLD_TOLERANCE and not artefact,
+        step_error=float(np.nanmax(m["step_error"])) if checked and np.isfinite(m["step_error"]).any() else float("nan"),
+        step_artefact=artefact,
         per_mass={k: [float(x) for x in m[k]] for k in ("min_grip", "peak_grip", "rms_lag", "slip", "crush", "impact")},
     )
 

@@ -38,6 +38,10 @@ def add_parser(sub):
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="fix a parameter, e.g. --set G_e=500 (repeatable; a per-robot name wins over the shared one)")
     config_arguments(p)
+    p.add_argument("--check-step", action="store_true",
+                   help="run every row again at dt/2 and mark rows whose min grip, peak or lag move by more than the "
+                        "accuracy tolerances (0.05 N, 2 %%, 2 %%) as status step_artefact, with a step_error column; "
+                        "triples the cost")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--chunk", type=int, default=16384, help="samples per saved chunk (default 16384)")
     p.add_argument("--devices", type=int, default=None, help="CPU devices to shard over (default: one per core)")
@@ -115,7 +119,7 @@ def run(args) -> int:
     if all(v is not None for v in distributed):  # before anything starts JAX's backend
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    spec = sweeps.make_spec(config, args.n, vary, fixed, args.seed, table)
+    spec = sweeps.make_spec(config, args.n, vary, fixed, args.seed, table, check_step=args.check_step)
     parts = args.out + ".parts"
     created = not os.path.exists(parts)
     interrupts.report_with(lambda: kept(parts, created))

@@ -12,20 +12,44 @@ import functools
 from typing import Callable, ClassVar, Mapping, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from coopjax import model
 from coopjax.errors import InputError
 
 
+class Path(NamedTuple):
+    """The grip force through one step [t_k, t_k + dt], for metrics that integrate or bound it.
+
+    An integrator that cuts the step at events (an impact, the force reaching F_lim) says where: the
+    step is S pieces, in order, and the force is continuous on each. `start` and `end` are its values
+    at each piece's ends; where one piece's end differs from the next one's start, the force jumps
+    there (an impact). A piece of length 0 carries the previous end's value."""
+
+    fraction: jax.Array  # (S, B) each piece's share of the step; they sum to 1
+    start: jax.Array  # (S, 2, B) force at each piece's start, N (the first is the step start's)
+    end: jax.Array  # (S, 2, B) force at each piece's end, N (the last is the step end's)
+    # (S, 2, B) bool or None: the piece ends where the robot's force reaches F_lim (a located switch).
+    # The force there is F_lim by definition; `end` carries the location's residue (first order).
+    surface: jax.Array | None = None
+    impact: jax.Array | None = None  # (S, 2, B) bool or None: the piece ends at the robot's impact
+
+    @classmethod
+    def whole(cls, start, end) -> "Path":
+        """One piece: a step the integrator does not cut."""
+        return cls(jnp.ones((1,) + end.shape[1:], end.dtype), start[None], end[None])
+
+
 class Observation(NamedTuple):
-    """What the metrics see at the sample time t_k = k dt (k = 0..N; the last has no step after it)."""
+    """What the metrics see at the sample time t_k = k dt (k = 0..N): the state and signals there and,
+    for k < N, the force's path through the step that starts there (None at the last sample)."""
 
     k: jax.Array  # int32 step index
     t: jax.Array  # s
     y: jax.Array  # (20, B) state at t_k
     aux: model.Aux  # signals at t_k, each (2, B)
-    F_impact: jax.Array | None  # (2, B) force just after a contact onset located inside [t_k, t_k + dt), or None
+    path: Path | None
 
 
 class Integrator:
@@ -43,9 +67,8 @@ class Integrator:
     # dt -> 0 limit (docs/model.md, "Step size"); None: no step tried reached them. Missing: not measured.
     converged_dt: ClassVar[Mapping[tuple[str, str], float | None]] = {}
 
-    def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, jax.Array | None]:
-        """y(t) -> (y(t + dt), the signals at t, the force just after a contact onset located inside
-        the step, or None if the integrator locates none)."""
+    def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, Path]:
+        """y(t) -> (y(t + dt), the signals at t, the grip force's path through the step)."""
         raise NotImplementedError
 
     def observe(self, params, y, t, dt, scenario, options) -> model.Aux:

@@ -1,8 +1,9 @@
-"""The sliding-mode integrator for the hard switch (docs/model.md, "The sliding-mode step"): fixed step, branch-free, batched.
+"""The sliding-mode integrator for the hard switch (docs/model.md, "The sliding-mode step").
 
-The hard switch makes the field discontinuous on sigma_i = F_i - F_lim = 0. In the carry scenario
-both surfaces attract, so the exact solution slides on them (a Filippov sliding mode), and plain RK4
-chatters across them and converges only at O(dt). This step reaches the dt -> 0 limit at dt = 1e-3.
+Fixed step, branch-free inside each RK4 stage, batched. The hard switch makes the field
+discontinuous on sigma_i = F_i - F_lim = 0. In the carry scenario both surfaces attract, so the exact
+solution slides on them (a Filippov sliding mode); plain RK4 chatters across them and converges only
+at O(dt). This step reaches the dt -> 0 limit at dt = 1e-3, in its values and in its derivatives.
 
 What makes it cheap:
 - Each robot's switch w_i enters only its own nine rows, and the body's rows hold no w. So the rate of
@@ -13,21 +14,26 @@ What makes it cheap:
 - The switch-on field (w = 1) is evaluated with max(F, F_lim) in gamma and dZ/dt (the clamp): gamma
   is unclipped, and just below the surface the controller's denominator can vanish.
 
-"The scheme, per RK4 stage and per robot i": evaluate the rows f0 (w = 0) and f1 (w = 1, clamped),
+The weight, per RK4 stage and per robot i: evaluate the rows f0 (w = 0) and f1 (w = 1, clamped),
 with switching rates sd0 and sd1, Delta = sd0 - sd1, then
   1. lambda* = clip(sd0 / Delta, 0, 1) if Delta > eps, else H(sd0): the on-surface Filippov weight;
-  2. the share theta of the (sub)step of length h spent before reaching the surface, from sigma_n
-     at the (sub)step start:
+  2. the share theta of the substep of length h spent before reaching the surface, from sigma_n and
+     the rates at the substep's start:
        sigma_n < 0:  theta = clip(-sigma_n / (sd0 h), 0, 1) if sd0 > 0 else 1,  lambda = (1 - theta) lambda*
        sigma_n >= 0: theta = clip(sigma_n / (-sd1 h), 0, 1) if sd1 < 0 else 1,  lambda = theta + (1 - theta) lambda*
   3. robot i's rows are f0 + lambda (f1 - f0); lambda = 0 for a robot out of contact.
 
-"Impacts: split the step at the contact onset": for a robot out of contact (delta <= 0) the contact
-time is predicted from delta + delta_dot tau + delta_ddot tau^2 / 2 = 0 (delta_ddot from the
-contact-free field). The step is two RK4 substeps: up to the earliest impact with that robot's
-contact forced off, then the rest with it forced on (no delta > 0 test). Without an impact the
-second substep has zero length, an exact no-op, so the step map stays continuous. The force just
-after the first substep is returned for the peak metric (docs/model.md, "Metrics").
+Events: the step is cut into up to three substeps, each ending at the first event of either robot
+predicted at its start (or at the step's end). The events are where the field, or its rate, jumps:
+- an impact, a tip out of contact (delta <= 0) meeting the body, predicted from
+  delta + delta_dot tau + delta_ddot tau^2 / 2 = 0 (delta_ddot from the contact-free field). Its
+  contact is held off up to the impact and on after it (no delta > 0 test);
+- the grip force reaching F_lim from below or from above (the switch), predicted to first order from
+  sigma and its rate; the switch is held as it is up to the event;
+- the Kelvin-Voigt force passing 0 while the tip touches (the contact force stops at 0).
+A substep of zero length is an exact no-op, so the step map is continuous. Unlocated, an event's
+effect on the step would depend on where in the step it fell: the value would still be right to
+O(dt), but its derivative with respect to the parameters would not converge.
 
 Stage times differ per sample within the substeps; commands take them through `Clock.advance`.
 
@@ -43,12 +49,17 @@ import jax
 import jax.numpy as jnp
 
 from coopjax import model
-from coopjax.integration.base import Integrator, register
+from coopjax.integration.base import Integrator, Path, register
 from coopjax.scenarios import Clock
 
-EPS = 1e-9  # N/s: below this the two switching rates are taken as equal (the on-surface weight, step 1 below)
+EPS = 1e-9  # N/s: below this the two switching rates are taken as equal (step 1 of the weight)
 # Rows that differ between the w = 0 and w = 1 fields; the kinematic rows (x_r, x_v, x_f) do not.
 SWITCHED = ("v_r", "v_v", "q_c", "v_f", "Z", "Y_e")
+PIECES = 3  # substeps per step: up to two events located in one step
+# Of the step: an event nearer than this is taken as reached (a first-order prediction's residue; for
+# the surface, sliding on it). Located or not, so short a piece changes the step by far less than
+# the tolerances.
+SHORTEST_EVENT = 1e-2
 
 
 class Rows(NamedTuple):
@@ -72,10 +83,13 @@ class Rows(NamedTuple):
 
 
 class Contact(NamedTuple):
-    """Per-robot contact override for a substep, each a pair of (B,) booleans (L, R)."""
+    """Per-robot overrides for a substep, each a pair of (B,) arrays (L, R): the contact forced on or
+    off (booleans), and the switch held off or on for the whole substep (`hold`: 0 off, 1 on, -1 not
+    held), for a robot whose substep ends where its force reaches F_lim."""
 
     on: tuple
     off: tuple
+    hold: tuple | None = None
 
 
 class Fields(NamedTuple):
@@ -83,6 +97,7 @@ class Fields(NamedTuple):
 
     in_contact: jax.Array  # (B,) bool
     F: jax.Array  # (B,) contact force, N
+    F_lim: jax.Array  # (B,) the robot's force limit, N
     sigma: jax.Array  # (B,) K_g delta + R_g delta_dot - F_lim while in contact, -F_lim otherwise, N
     sd0: jax.Array  # (B,) switching rate of the w = 0 field, N/s
     sd1: jax.Array  # (B,) switching rate of the w = 1 field, N/s
@@ -127,28 +142,44 @@ def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, opti
         sd0 = p.K_g * delta_dot + p.R_g * s * (off["v_r"] - body["v_o"])
         sd1 = p.K_g * delta_dot + p.R_g * s * (on["v_r"] - body["v_o"])
         sigma = jnp.where(in_contact, kelvin, 0.0) - p.F_lim
-        out.append(Fields(in_contact, F, sigma, sd0, sd1, off, on, aux_off, aux_on))
+        out.append(Fields(in_contact, F, p.F_lim, sigma, sd0, sd1, off, on, aux_off, aux_on))
     return tuple(out), body
 
 
-def weight(f: Fields, sigma_n, h):
-    """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
+def fractions(f: Fields, sigma_n, h):
+    """The shares theta of a (sub)step of length h (B,) spent before the surface is reached, from
+    below and from above (step 2 of the scheme), from sigma_n and the switching rates at its start.
 
-    sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,).
+    They are taken at the substep's start, not at each stage: an event the step is split at then
+    ends its first substep with theta = 1 exactly, whether it is split there or not, so the map does
+    not jump when the order of two events (of the two robots) changes.
     Divisions are guarded so that a branch that is not taken cannot put a NaN in a gradient.
     """
     sd0, sd1 = f.sd0, f.sd1
-    delta = sd0 - sd1
-    sliding = delta > EPS
-    lam_star = jnp.where(sliding, jnp.clip(sd0 / jnp.where(sliding, delta, 1.0), 0.0, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
-
     approach_from_below = sd0 * h > 0.0
     theta_below = jnp.where(
         approach_from_below, jnp.clip(-sigma_n / jnp.where(approach_from_below, sd0 * h, 1.0), 0.0, 1.0), 1.0)
     approach_from_above = -sd1 * h > 0.0
     theta_above = jnp.where(
         approach_from_above, jnp.clip(sigma_n / jnp.where(approach_from_above, -sd1 * h, 1.0), 0.0, 1.0), 1.0)
+    return theta_below, theta_above
+
+
+def weight(f: Fields, sigma_n, h, hold=None, theta=None):
+    """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
+
+    sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,); `theta` the
+    substep start's `fractions` (taken from this point's rates if None); `hold` (B,) holds the
+    switch off (0) or on (1) where it is not -1.
+    """
+    sd0, sd1 = f.sd0, f.sd1
+    delta = sd0 - sd1
+    sliding = delta > EPS
+    lam_star = jnp.where(sliding, jnp.clip(sd0 / jnp.where(sliding, delta, 1.0), 0.0, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
+    theta_below, theta_above = fractions(f, sigma_n, h) if theta is None else theta
     lam = jnp.where(sigma_n < 0.0, (1.0 - theta_below) * lam_star, theta_above + (1.0 - theta_above) * lam_star)
+    if hold is not None:
+        lam = jnp.where(hold >= 0, hold.astype(lam.dtype), lam)
     return jnp.where(f.in_contact, lam, 0.0)
 
 
@@ -168,8 +199,10 @@ def aux(f: Fields, lam) -> model.Aux:
                      v_ref=blend(f.aux_off.v_ref, f.aux_on.v_ref))
 
 
-def _rates(fs, body, sigma_n, h) -> Rows:
-    return Rows(tuple(combine(f, weight(f, s_n, h)) for f, s_n in zip(fs, sigma_n)), body)
+def _rates(fs, body, sigma_n, h, contact: Contact | None, thetas) -> Rows:
+    holds = (None, None) if contact is None or contact.hold is None else contact.hold
+    return Rows(tuple(combine(f, weight(f, s_n, h, hold, theta)) for f, s_n, hold, theta in zip(fs, sigma_n, holds, thetas)),
+                body)
 
 
 def _axpy(rows: Rows, c, k: Rows) -> Rows:
@@ -182,39 +215,23 @@ RK4_A = (0.0, 0.5, 0.5, 1.0)
 RK4_B = (1.0, 2.0, 2.0, 1.0)
 
 
-def substep(ps, rows: Rows, clock: Clock, h, contact, scenario, options):
-    """RK4 over a (sub)step of per-sample length h (B,), each stage with its Filippov weights.
+class Plan(NamedTuple):
+    """What a substep decides at its start: its length and, per robot, its overrides."""
 
-    The four stages run as a `lax.scan` over the tableau (the first at A = 0, from k = 0): one
-    stage body for XLA to compile instead of a chain of them. Unrolled, the differentiated step took
-    28 s to compile (measured), growing faster than the chain's length, and the forward step ran no
-    faster. Returns the new state and both robots' contact forces at the first stage.
-    """
-    # Every stage's theta uses sigma at the substep start (step 2 of the scheme): the contact alone.
-    sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, contact), ps))
-
-    def stage(carry, tableau):
-        k_prev, total = carry
-        a, b = tableau
-        fs, body = fields(ps, _axpy(rows, a * h, k_prev), clock.advance(a * h), contact, scenario, options)
-        k = _rates(fs, body, sigma_n, h)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (fs[0].F, fs[1].F)
-
-    tableau = (jnp.asarray(RK4_A, h.dtype), jnp.asarray(RK4_B, h.dtype))
-    # 0 x rows rather than zeros: under jvp and vmap the stage scan's carry then has its tangents and
-    # batch axes from the start, and the scan is traced once instead of until they settle.
-    zero = jax.tree_util.tree_map(lambda x: 0.0 * x, rows)
-    (_, total), F = jax.lax.scan(stage, (zero, zero), tableau)
-    return _axpy(rows, h / 6, total), (F[0][0], F[1][0])
+    h: jax.Array  # (B,) s
+    on: tuple  # contact held on (the substep after an impact)
+    off: tuple  # contact held off (the substep that ends at an impact)
+    hold: tuple  # switch held: 0 off, 1 on, -1 not held (the substep that ends where F reaches F_lim)
+    impact: tuple  # this substep ends at the robot's impact
 
 
-def impact_fraction(p, st, s, a_r_off, a_o, dt):
-    """One robot's share of the step before its contact onset (1 if none), and whether it hits.
+def impact_time(p, st, s, a_r_off, a_o):
+    """Time to one robot's contact onset (inf if none is predicted).
 
     The contact time solves delta + delta_dot tau + delta_ddot tau^2 / 2 = 0, written without
     cancellation as tau = -2 delta / (delta_dot + sqrt(delta_dot^2 - 2 delta_ddot delta)). For a robot
-    out of contact the step-start switch-off field is the contact-free one, so delta_ddot comes from
-    its tip acceleration a_r_off and the body's a_o. See "Impacts" in the module docstring.
+    out of contact the switch-off field is the contact-free one, so delta_ddot comes from its tip
+    acceleration a_r_off and the body's a_o.
     """
     delta, delta_dot, _ = model.geometry(p, st, s)
     delta_ddot = s * (a_r_off - a_o)
@@ -222,55 +239,125 @@ def impact_fraction(p, st, s, a_r_off, a_o, dt):
     real = (delta <= 0.0) & (disc > 0.0)
     denominator = delta_dot + jnp.sqrt(jnp.where(real, disc, 1.0))
     hits = real & (denominator > 0.0)
-    tau = -2.0 * delta / jnp.where(hits, denominator, 1.0)
-    hits = hits & (tau <= dt)
-    return jnp.where(hits, tau / dt, 1.0), hits
+    return jnp.where(hits, -2.0 * delta / jnp.where(hits, denominator, 1.0), jnp.inf)
+
+
+def switching_time(f: Fields, shortest):
+    """Time to one robot's next switching event while in contact (inf if none), first order, and
+    the switch's hold until then: off (0) when the force rises to F_lim, on (1) when it falls to it,
+    -1 when the Kelvin-Voigt force reaches 0 (below F_lim, where the w = 0 rate applies). A force
+    already within `shortest` of F_lim is taken as on the surface (sliding there)."""
+    below = f.in_contact & (f.sigma < 0.0) & (f.sd0 > 0.0)
+    above = f.in_contact & (f.sigma > 0.0) & (f.sd1 < 0.0)
+    rate = jnp.where(below, f.sd0, jnp.where(above, -f.sd1, 1.0))
+    tau = jnp.where((below | above), jnp.abs(f.sigma) / rate, jnp.inf)
+    tau = jnp.where(tau > shortest, tau, jnp.inf)
+    kelvin = f.sigma + f.F_lim
+    crossing = f.in_contact & (f.F_lim > 0.0) & (kelvin * f.sd0 < 0.0)
+    tau0 = jnp.where(crossing, jnp.abs(kelvin) / jnp.where(crossing, jnp.abs(f.sd0), 1.0), jnp.inf)
+    tau0 = jnp.where(tau0 > shortest, tau0, jnp.inf)
+    first = jnp.minimum(tau, tau0)
+    hold = jnp.where(tau <= tau0, jnp.where(above, 1, 0), -1)
+    return first, jnp.where(jnp.isfinite(first), hold, -1)
+
+
+def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last) -> Plan:
+    """The next substep: up to the first event of either robot within `remaining` (all of it for
+    the `last` piece a step has)."""
+    times, holds, impacts = [], [], []
+    for i in range(2):
+        tau, hold = switching_time(fs[i], SHORTEST_EVENT * dt)
+        if options.contact == "bilateral":  # always in contact: no impacts
+            hit = jnp.full_like(tau, jnp.inf)
+        else:
+            hit = jnp.where(on[i], jnp.inf, impact_time(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], body["v_o"]))
+        times.append(jnp.minimum(tau, hit))
+        holds.append(jnp.where(hit < tau, -1, hold))
+        impacts.append(hit <= tau)
+    h = jnp.where(last, remaining, jnp.minimum(jnp.minimum(*times), remaining))
+    first = tuple((times[i] <= h) & (times[i] <= remaining) & ~last for i in range(2))  # ties: both at once
+    impact = tuple(first[i] & impacts[i] for i in range(2))
+    hold = tuple(jnp.where(first[i], holds[i], -1) for i in range(2))
+    return Plan(h, on, impact, hold, impact)
+
+
+def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, last=False):
+    """RK4 over the next piece of a step: up to the first event predicted at its start, or the rest
+    of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit.
+
+    The four stages run as a `lax.scan` over the tableau (the first at A = 0, from k = 0): one
+    stage body for XLA to compile instead of a chain of them. The first stage is the substep's
+    start: its fields give the plan (length and overrides) and the fractions theta for all four.
+    Returns the new state, the plan, the signals and both contact forces at the start.
+    """
+    # Every stage's theta uses sigma at the substep start (step 2 of the weight): the contact alone.
+    no = jnp.zeros_like(on[0])
+    sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, Contact(on, (no, no))), ps))
+    start = Plan(remaining, on, (no, no), (jnp.full(no.shape, -1), jnp.full(no.shape, -1)), (no, no))
+
+    def stage(carry, tableau):
+        k_prev, total, part, thetas, signals = carry
+        a, b = tableau
+        first = a == 0.0
+        contact = Contact(part.on, part.off, part.hold)
+        fs, body = fields(ps, _axpy(rows, a * part.h, k_prev), clock.advance(a * part.h), contact, scenario, options)
+        # At the substep's start: its plan, and the fractions that serve all four stages.
+        part = jax.tree_util.tree_map(lambda new, old: jnp.where(first, new, old),
+                                      plan(ps, rows, fs, body, remaining, on, dt, options, last), part)
+        thetas = jax.tree_util.tree_map(lambda new, old: jnp.where(first, new, old),
+                                        tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n)), thetas)
+        contact = Contact(part.on, part.off, part.hold)
+        k = _rates(fs, body, sigma_n, part.h, contact, thetas)
+        weights = tuple(weight(f, s_n, part.h, hold, theta) for f, s_n, hold, theta in zip(fs, sigma_n, part.hold, thetas))
+        signals = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(first, new, old),
+            model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights))))), signals)
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k), part, thetas, signals), None
+
+    tableau = (jnp.asarray(RK4_A, remaining.dtype), jnp.asarray(RK4_B, remaining.dtype))
+    # 0 x rows rather than zeros: under jvp and vmap the stage scan's carry then has its tangents and
+    # batch axes from the start, and the scan is traced once instead of until they settle.
+    zero = jax.tree_util.tree_map(lambda x: 0.0 * x, rows)
+    unset = tuple((0.0 * remaining, 0.0 * remaining) for _ in range(2))
+    signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
+    (_, total, part, _, signals), _ = jax.lax.scan(stage, (zero, zero, start, unset, signals0), tableau)
+    return _axpy(rows, part.h / 6, total), part, signals
 
 
 def step(params, y, t, dt, scenario, options):
-    """y(t) -> (y(t + dt), the signals at t, the force just after a located impact)."""
+    """y(t) -> (y(t + dt), the signals at t, the grip force's path through the step).
+
+    Up to `PIECES` substeps, each ending at the first event (see "Events" in the module docstring).
+    A substep with nothing left to do for every sample of the batch (most steps have one piece) is
+    skipped: an exact no-op for a finite state, and the largest saving of the step.
+    """
     rows = Rows.of(y)
     ps = model.robots(params)
     clock = Clock.at(t)
-    # At the step start the metrics see the signals, and the impact prediction needs the switch-off
-    # field. Signals no metric uses (the Filippov weight, gamma) are dead code that XLA removes.
-    fs, body = fields(ps, rows, clock, None, scenario, options)
-    h_full = jnp.full(y.shape[1:], dt, y.dtype)
-    aux_start = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, weight(f, f.sigma, h_full)) for f in fs))))
-    F = aux_start.F
-    if options.contact == "bilateral":  # no impacts: one RK4 step
-        new, _ = substep(ps, rows, clock, h_full, None, scenario, options)
-        return new.array(), aux_start, None
-    a_o = body["v_o"]
-    fraction, hits = [], []
-    for i in range(2):
-        f_i, hits_i = impact_fraction(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], a_o, dt)
-        fraction.append(f_i)
-        hits.append(hits_i)
-    theta_c = jnp.minimum(*fraction)
-    first = tuple(hits[i] & (fraction[i] <= theta_c) for i in range(2))  # ties: both hit at once
-    h1 = theta_c * dt
-    h2 = dt - h1  # exactly 0 without an impact
-    no = jnp.zeros_like(first[0])
+    no = jnp.zeros(y.shape[1:], bool)
+    remaining = jnp.full(y.shape[1:], dt, y.dtype)
+    F0 = jnp.stack([c[1] for c in _contacts(ps, rows, options)])
 
-    # Up to the impact, the hitting robot's contact is off; after it, on. Both substeps run as one
-    # `lax.scan` body, so XLA compiles the stage once (see `substep`). A substep of zero length for
-    # every sample (the second, in a step where no sample of the batch hits: most steps) is an exact
-    # no-op for a finite state and is skipped: 1.8x faster, measured. Its start force then stands in
-    # as the step-start force, which the peak metric sees anyway.
-    def run(rows, xs):
-        offset, h, forced_on, forced_off = xs
-        new, start_F = substep(ps, rows, clock.advance(offset), h, Contact(forced_on, forced_off), scenario, options)
-        return new, jnp.stack(start_F)
+    def run(carry, j):
+        rows, remaining, offset, on, F_end, signals = carry
+        new, part, start_signals = substep(ps, rows, clock.advance(offset), remaining, on, dt, scenario, options,
+                                           last=j == PIECES - 1)
+        end = jnp.stack([c[1] for c in _contacts(ps, new, options, Contact(part.on, part.off, part.hold))])
+        signals = jax.tree_util.tree_map(lambda s, n: jnp.where(offset == 0.0, n, s), signals, start_signals)
+        carry = (new, remaining - part.h, offset + part.h, part.impact, end, signals)
+        return carry, (part.h, start_signals.F, end, jnp.stack([hold >= 0 for hold in part.hold]), jnp.stack(part.impact))
 
-    def part(rows, xs):
+    def piece(carry, j):
         # One predicate for the whole batch; under `vmap` the cond becomes a select and both run.
-        return jax.lax.cond((xs[1] > 0.0).any(), run, lambda rows, xs: (rows, F), rows, xs)
+        return jax.lax.cond((carry[1] > 0.0).any(), run,
+                            lambda carry, _: (carry, (0.0 * carry[1], carry[4], carry[4], jnp.zeros_like(carry[4], bool),
+                                                      jnp.zeros_like(carry[4], bool))),
+                            carry, j)
 
-    pairs = lambda a, b: tuple(jnp.stack([a[i], b[i]]) for i in range(2))
-    xs = (jnp.stack([jnp.zeros_like(h1), h1]), jnp.stack([h1, h2]), pairs((no, no), first), pairs(first, (no, no)))
-    new, start_F = jax.lax.scan(part, rows, xs)
-    return new.array(), aux_start, start_F[1]  # F just after the impact: the 2nd substep's start
+    signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
+    carry = (rows, remaining, 0.0 * remaining, (no, no), F0, signals0)
+    (new, _, _, _, _, signals), (h, starts, ends, surface, impact) = jax.lax.scan(piece, carry, jnp.arange(PIECES))
+    return new.array(), signals, Path(h / dt, starts, ends, surface, impact)
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:

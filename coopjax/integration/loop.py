@@ -103,8 +103,8 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
     def advance(carry, k):
         y, acc, diverged, t_div = carry
         t = k.astype(dtype) * dt
-        y_new, aux, F_impact = integrator.step(views, y, t, dt, scenario, options)
-        acc_new = metrics.update(acc, Observation(k, t, y, aux, F_impact), params)
+        y_new, aux, path = integrator.step(views, y, t, dt, scenario, options)
+        acc_new = metrics.update(acc, Observation(k, t, y, aux, path), params)
         acc = jax.tree_util.tree_map(lambda new, old: jnp.where(diverged, old, new), acc_new, acc)
         # A non-finite state or an absurd force freezes the sample at its last good state, so its
         # garbage never reaches the metrics; the other samples are independent by construction.

@@ -6,8 +6,10 @@ With the hard switch it chatters across F = F_lim and converges to the sliding m
 
 from __future__ import annotations
 
-from coopjax import model
-from coopjax.integration.base import Integrator, register
+import jax.numpy as jnp
+
+from coopjax import model, surrogates
+from coopjax.integration.base import Integrator, Path, register
 from coopjax.scenarios import Clock
 
 
@@ -18,6 +20,13 @@ def rk4(f, t, y, dt, k1=None):
     k3 = f(t + dt / 2, y + (dt / 2) * k2)
     k4 = f(t + dt, y + dt * k3)
     return y + (dt / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def contact_forces(params, y, options):
+    """Both grip forces (2, B) at the state y: the contact alone, no field."""
+    st = model.split(y)
+    return jnp.stack([surrogates.contact_force(params[i], *model.geometry(params[i], st[i], model.SIGNS[i])[:2], options)
+                      for i in range(2)])
 
 
 @register
@@ -39,7 +48,8 @@ class PlainRK4(Integrator):
             return model.vector_field(params, y, Clock.at(t), scenario, options)
 
         k1, aux = field(t, y)
-        return rk4(lambda t, y: field(t, y)[0], t, y, dt, k1), aux, None
+        new = rk4(lambda t, y: field(t, y)[0], t, y, dt, k1)
+        return new, aux, Path.whole(aux.F, contact_forces(params, new, options))
 
     def observe(self, params, y, t, dt, scenario, options) -> model.Aux:
         return model.vector_field(params, y, Clock.at(t), scenario, options)[1]

@@ -1,14 +1,19 @@
 """The grip metrics: the least and largest grip force, and the squared excursions past the band.
 
 - min_grip [N]: the least grip force over the grip window, both robots;
-- peak_grip [N]: the largest grip force over the whole run, impacts located inside a step included
-  (sampling the force only on the step grid misses part of an impact's jump);
-- slip [N^2]: mean over the grip window of sum_i max(0, F_lim - F_i)^2, the lower limit;
-- crush [N^2]: mean over the grip window of sum_i max(0, F_i - F_max)^2, the upper band;
+- peak_grip [N]: the largest grip force over the whole run;
+- slip [N^2]: the time mean over the grip window of sum_i max(0, F_lim - F_i)^2, the lower limit;
+- crush [N^2]: the time mean over the grip window of sum_i max(0, F_i - F_max)^2, the upper band;
 - impact [N^2]: as crush, over the rest of the run after the grip window (release and re-contact).
 
-With a scenario's `after_reach`, a robot's grip samples count from the moment its force first
-reaches F_lim: the claim of the paper's Fig. 6 is about the grip once established.
+They are taken over the force's path through each step (`Observation.path`), not only at the
+step grid: an impact jumps the force inside a step, and a metric sampled on the grid alone would
+jump by a step's worth each time the impact crossed a grid point as a parameter moved. Its value
+would then be right to O(dt) but its derivative wrong. The means are trapezoidal integrals over the
+pieces the integrator cut the step into; the peak sees the force at every cut, the minimum at the located events.
+
+With a scenario's `after_reach`, a robot's grip counts from the moment its force first reaches
+F_lim: the claim of the paper's Fig. 6 is about the grip once established.
 """
 
 from __future__ import annotations
@@ -21,17 +26,6 @@ from coopjax.params import Spec
 F_MAX = {"F_max": Spec(15.0, "N", False, "finite", "upper force band of the crush and impact metrics")}
 
 
-def _counted(reached, obs, params, ctx):
-    """Per robot, whether this sample counts in the grip window, and the reached flags after it
-    (kept only for a scenario with `after_reach`: in the scan's carry they cost memory traffic)."""
-    F = obs.aux.F
-    in_grip = ctx.inside("grip", obs.k)
-    if not ctx.scenario.after_reach:
-        return jnp.broadcast_to(in_grip, F.shape), None
-    now = jnp.maximum(reached, (F >= params.F_lim).astype(F.dtype))
-    return in_grip & (now > 0), now
-
-
 def _robots(batch_shape, dtype, value):
     return jnp.full((2,) + tuple(batch_shape), value, dtype)
 
@@ -40,8 +34,25 @@ def _reached(batch_shape, dtype, ctx):
     return _robots(batch_shape, dtype, 0.0) if ctx.scenario.after_reach else None
 
 
-# --- min_grip: its accumulator is (least force, largest force, reached flags), each (2, B); the last
-# two only with after_reach (a robot that never reaches F_lim reports its peak).
+def _reach(reached, F, params):
+    return None if reached is None else jnp.maximum(reached, (F >= params.F_lim).astype(F.dtype))
+
+
+def _step_inside(ctx, name, k):
+    """Whether the step [t_k, t_k+1] lies in the named window."""
+    bounds = ctx.window(name)
+    if bounds is None:
+        return jnp.zeros_like(k, bool)
+    return (k >= bounds[0]) & (k < bounds[1])
+
+
+def _duration(ctx, name) -> float:
+    bounds = ctx.window(name)
+    return 0.0 if bounds is None else max(0, bounds[1] - bounds[0]) * ctx.dt
+
+
+# --- min_grip: (least force, reached flags); with after_reach also the largest force, which a robot
+# that never reaches F_lim reports instead.
 
 
 def _min_init(batch_shape, dtype, ctx):
@@ -52,27 +63,38 @@ def _min_init(batch_shape, dtype, ctx):
 def _min_update(acc, obs, params, ctx):
     least, peak, reached = acc
     F = obs.aux.F
-    counted, now = _counted(reached, obs, params, ctx)
-    if now is None:
-        return (jnp.where(counted, jnp.minimum(least, F), least), peak, reached)
+    now = _reach(reached, F, params)
+    in_window = ctx.inside("grip", obs.k)
+    sample = jnp.broadcast_to(in_window, F.shape) if now is None else in_window & (now > 0)
     F_counted = F
-    if ctx.scenario.after_reach:
+    if now is not None:
         # The force passed through F_lim inside the step that first reaches it, so the exact minimum
-        # after reaching includes F_lim itself; the first grid sample alone sits up to dF/dt * dt above
-        # it (0.23 N at dt = 1e-3 in the paper scenario). Only a scenario whose contact starts at rest
-        # (no impact that could jump over F_lim) should use after_reach.
-        newly = (now > 0) & (reached == 0) & (obs.k > 0)
-        F_counted = jnp.where(newly, jnp.minimum(F, params.F_lim), F)
-    return (jnp.where(counted, jnp.minimum(least, F_counted), least), jnp.maximum(peak, F), now)
+        # after reaching includes F_lim itself (a scenario with after_reach starts its contact at rest:
+        # no impact jumps over F_lim).
+        F_counted = jnp.where((now > 0) & (reached == 0) & (obs.k > 0), jnp.minimum(F, params.F_lim), F)
+    least = jnp.where(sample, jnp.minimum(least, F_counted), least)
+    if obs.path is not None and obs.path.impact is not None:
+        # Between grid points, the events whose force is known: just before a robot's impact (its
+        # force jumps there, the grid can miss the separation) and a located switch (F = F_lim by
+        # definition). Other cuts are not counted: which cuts a step makes depends on the grid, and
+        # the minimum would move with it.
+        path = obs.path
+        inside = _step_inside(ctx, "grip", obs.k)
+        counted = inside if now is None else inside & (now > 0)
+        for j in range(path.fraction.shape[0] - 1):
+            at_event = jnp.where(path.impact[j], path.end[j], jnp.where(path.surface[j], params.F_lim, jnp.inf))
+            least = jnp.where(counted, jnp.minimum(least, at_event), least)
+    if peak is not None:
+        peak = jnp.maximum(peak, F)
+    return (least, peak, now if now is not None else reached)
 
 
 def _min_finalize(acc, ctx):
     least, peak, _ = acc
-    if ctx.count("grip") == 0:
+    if _duration(ctx, "grip") == 0:
         return jnp.full(least.shape[1:], jnp.nan, least.dtype)
     if peak is None:
         return least.min(0)
-    # A robot that never reached F_lim (only possible with after_reach) reports its peak instead.
     return jnp.where(jnp.isinf(least), peak, least).min(0)
 
 
@@ -84,53 +106,75 @@ MIN_GRIP = register(Metric("min_grip", "N", "least grip force over the grip wind
 
 
 def _peak_update(peak, obs, params, ctx):
-    F = obs.aux.F if obs.F_impact is None else jnp.maximum(obs.aux.F, obs.F_impact)
+    F = obs.aux.F
+    if obs.path is not None:  # an impact's jump inside the step
+        F = jnp.maximum(F, jnp.maximum(obs.path.start.max(0), obs.path.end.max(0)))
     return jnp.maximum(peak, F)
 
 
-PEAK_GRIP = register(Metric("peak_grip", "N", "largest grip force over the whole run, located impacts included",
+PEAK_GRIP = register(Metric("peak_grip", "N", "largest grip force over the whole run, impacts inside a step included",
                             lambda b, d, ctx: _robots(b, d, -jnp.inf), _peak_update, lambda peak, ctx: peak.max(0)))
 
 
-# --- slip and crush: sums over the grip window, with the reached flags for after_reach
+# --- the time means: trapezoidal integrals over each step's two pieces
 
 
-def _window_sum(excess):
+def _integral(excess, obs, params, ctx, dt, reached):
+    """sum_i of the integral over the step of excess(F_i)^2 (robots that have reached F_lim, with a
+    reached flag given)."""
+    path = obs.path
+    g = lambda x: excess(x, params) ** 2
+    total = 0.0
+    for j in range(path.fraction.shape[0]):
+        piece = 0.5 * path.fraction[j][None] * (g(path.start[j]) + g(path.end[j]))
+        if reached is not None:  # each piece counts from the moment its robot has reached F_lim
+            reached = _reach(reached, path.start[j], params)
+            piece = jnp.where(reached > 0, piece, 0.0)
+            reached = _reach(reached, path.end[j], params)
+        total = total + piece
+    return dt * total.sum(0)
+
+
+def _window_mean(excess, window):
     def init(batch_shape, dtype, ctx):
         return jnp.zeros(tuple(batch_shape), dtype), _reached(batch_shape, dtype, ctx)
 
     def update(acc, obs, params, ctx):
         total, reached = acc
-        counted, now = _counted(reached, obs, params, ctx)
-        term = jnp.where(counted, excess(obs.aux.F, params) ** 2, 0.0).sum(0)
-        return total + term, reached if now is None else now
+        now = _reach(reached, obs.aux.F, params)
+        if obs.path is not None:
+            inside = _step_inside(ctx, window, obs.k).astype(total.dtype)
+            total = total + inside * _integral(excess, obs, params, ctx, ctx.dt, now)
+        return total, now if now is not None else reached
 
     def finalize(acc, ctx):
-        n = ctx.count("grip")
-        return acc[0] / n if n else jnp.full_like(acc[0], jnp.nan)
+        span = _duration(ctx, window)
+        return acc[0] / span if span else jnp.full_like(acc[0], jnp.nan)
 
     return init, update, finalize
 
 
-SLIP = register(Metric("slip", "N^2", "mean over the grip window of sum_i max(0, F_lim - F_i)^2",
-                       *_window_sum(lambda F, p: jnp.maximum(p.F_lim - F, 0.0))))
-CRUSH = register(Metric("crush", "N^2", "mean over the grip window of sum_i max(0, F_i - F_max)^2",
-                        *_window_sum(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0)), parameters=F_MAX))
+SLIP = register(Metric("slip", "N^2", "time mean over the grip window of sum_i max(0, F_lim - F_i)^2",
+                       *_window_mean(lambda F, p: jnp.maximum(p.F_lim - F, 0.0), "grip")))
+CRUSH = register(Metric("crush", "N^2", "time mean over the grip window of sum_i max(0, F_i - F_max)^2",
+                        *_window_mean(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), "grip"), parameters=F_MAX))
 
 
 # --- impact: crush over the rest of the run after the grip window
 
 
 def _impact_update(total, obs, params, ctx):
+    if obs.path is None:
+        return total
     bounds = ctx.window("grip")
-    after = (obs.k > (bounds[1] if bounds else -1)).astype(total.dtype)
-    return total + after * (jnp.maximum(obs.aux.F - params.F_max[None], 0.0) ** 2).sum(0)
+    after = (obs.k >= (bounds[1] if bounds else 0)).astype(total.dtype)
+    return total + after * _integral(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), obs, params, ctx, ctx.dt, None)
 
 
 def _impact_finalize(total, ctx):
     bounds = ctx.window("grip")
-    n = max(0, ctx.n_steps - (bounds[1] if bounds else -1))
-    return total / n if n else jnp.full_like(total, jnp.nan)
+    span = max(0, ctx.n_steps - (bounds[1] if bounds else 0)) * ctx.dt
+    return total / span if span else jnp.full_like(total, jnp.nan)
 
 
 IMPACT = register(Metric("impact", "N^2", "as crush, over the rest of the run after the grip window (release)",
