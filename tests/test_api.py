@@ -50,6 +50,7 @@ def test_straight_through_is_hard_forward_and_has_gradients():
     assert np.isfinite(float(g)) and float(g) != 0.0
 
 
+@pytest.mark.slow
 def test_bilateral_contact_pulls_where_unilateral_lets_go():
     # In the release phase the tips back away: a unilateral gripper goes slack, a bilateral one pulls.
     run = lambda contact: np.asarray(

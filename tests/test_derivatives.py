@@ -30,6 +30,7 @@ def limit_slope(f, x, dt, widths=(1e-2, 3e-3)):
     return [(v[2 * i] - v[2 * i + 1]) / (2 * w) for i, w in enumerate(widths)]
 
 
+@pytest.mark.slow
 def test_the_readme_gradient_has_the_sign_and_size_of_the_limits_slope():
     wide, narrow = limit_slope(readme_loss, 0.5, 2.5e-4)
     assert abs(wide / narrow - 1) < 0.03  # the limit is smooth here: the two secants agree

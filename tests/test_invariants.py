@@ -30,15 +30,16 @@ def test_total_momentum_is_conserved_over_carry(switch, integrator):
 # (it chatters on F = F_lim) and the loop amplifies them. See docs/model.md, "Step size".
 @pytest.mark.parametrize("scenario, switch, dt", [("carry", "hard", 1e-3),
                                                   pytest.param("paper", "hard", 1e-3, marks=pytest.mark.slow)])
-def test_batch_of_eight_equals_eight_single_runs(scenario, switch, dt):
+def test_a_batch_of_eight_equals_its_single_runs(scenario, switch, dt):
     rng = np.random.default_rng(0)
     values = dict(
         M_b=rng.uniform(0.5, 5, 8), K_GP=rng.uniform(0.4, 0.6, 8), K_GI=rng.uniform(0.08, 0.12, 8),
         tau=rng.uniform(1.0, 1.5, 8), G_e=rng.uniform(500, 700, 8),
     )
+    singles = range(8) if scenario == "paper" else (0, 3, 6)  # in CI, three of the eight against the batch
     run = lambda params: cj.simulate(params, scenario, switch=switch, dt=dt, every=int(0.05 / dt))
     batch = run(cj.make_params(**values))
-    for b in range(8):
+    for b in singles:
         single = run(cj.make_params(**{k: v[b] for k, v in values.items()}))
         for name, got in batch.metrics._asdict().items():
             # atol: slip is a sum of squared shortfalls, ~1e-28 N^2 where the grip slides on F_lim.
@@ -48,7 +49,8 @@ def test_batch_of_eight_equals_eight_single_runs(scenario, switch, dt):
                                    np.asarray(single.trajectory.aux.F), rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("integrator", ["rk4", "filippov"])
+# filippov is slow here: test_sliding.py and test_sweeps.py flag its blown-up samples in CI.
+@pytest.mark.parametrize("integrator", ["rk4", pytest.param("filippov", marks=pytest.mark.slow)])
 def test_a_diverging_sample_is_flagged_and_leaves_its_neighbours_alone(integrator):
     # K_GP = 100 makes RK4 at dt = 1e-3 unstable (its limit is 2.8e-5 s) in the paper scenario; with
     # filippov it is the carry scenario, whose sliding phases visit the fast mode, that blows up.

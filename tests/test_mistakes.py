@@ -278,6 +278,7 @@ def test_a_stale_temporary_file_from_a_killed_write_is_gone_after_the_next_succe
     assert io.read_table("s.csv")["a"].tolist() == [0.0, 1.0, 2.0]
 
 
+@pytest.mark.slow
 def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_path):
     """A real kill -9 while the table is being written (a hook sleeps inside the write), then --resume."""
     args = [sys.executable, "-c",

@@ -27,6 +27,7 @@ def test_smooth_model_agrees_with_scipy_radau(scenario, T, dt):
     np.testing.assert_allclose(np.asarray(sol.y_final), y_ref, rtol=1e-4, atol=1e-4 * np.abs(y_ref).max())
 
 
+@pytest.mark.slow
 def test_blend_model_agrees_with_scipy_radau():
     """The blend surrogate (a `coopjax tune --switch` option) against the reference's own blend, over grip and carry."""
     gains = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0, M_b=2.0)

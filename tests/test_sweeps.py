@@ -46,6 +46,7 @@ def assert_same_table(a, b):
             np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+@pytest.mark.slow
 def test_rows_equal_single_simulate_runs():
     spec = sweeps.make_spec("paper", 12, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, {"G_e": 500.0}, T=1.0)
     table = sweeps.run(spec, chunk=5)

@@ -23,6 +23,7 @@ def peak(k, M_b=2.0):
     return cj.simulate(cj.make_params(K_GP=k, M_b=M_b), "paper", checkpoint=False, **SETTINGS).metrics.peak_grip
 
 
+@pytest.mark.slow
 def test_vmap_of_simulate_equals_a_loop_of_single_runs():
     batched = np.asarray(jax.jit(jax.vmap(peak))(GAINS))
     looped = np.array([float(peak(k)) for k in GAINS])
@@ -62,6 +63,7 @@ def test_the_import_contracts_hold():
     assert "0 broken" in run.stdout
 
 
+@pytest.mark.slow
 def test_xla_default_flags_give_the_suites_answer_to_round_off():
     """The suite compiles with faster-compiling XLA flags (conftest.py); users get XLA's defaults.
     A run under the defaults, in a fresh process, equals the suite's to round-off."""

@@ -54,8 +54,10 @@ def point():
     return masses, mult
 
 
-# Forward mode is marked slow: test_gradients.py checks forward mode on the hard model in CI.
-@pytest.mark.parametrize("mode", [pytest.param("forward", marks=pytest.mark.slow), "reverse"])
+# Both modes are slow here: test_gradients.py checks reverse mode on the hard model in CI, and the
+# tuner's forward mode runs end to end in test_tuning_cli.py.
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["forward", "reverse"])
 def test_gradients_of_the_constrained_objective_match_central_differences(point, mode):
     masses, mult = point
     L_fn = jax.jit(lambda th: constrained.lagrangian(*pb.terms(th, BASE, PROBLEM, jnp.asarray(masses))[:2], mult))
@@ -71,6 +73,7 @@ def test_gradients_of_the_constrained_objective_match_central_differences(point,
     assert np.all(np.abs(ev.gradient - fd) <= 1e-4 * np.abs(fd) + 1e-5 * scale), (ev.gradient, fd)
 
 
+@pytest.mark.slow
 def test_k_starts_in_one_batch_equal_k_single_runs(point):
     masses, _ = point
     evaluate = Evaluator(PROBLEM, BASE)
