@@ -20,7 +20,7 @@ GAINS = jnp.array([0.3, 0.5, 0.8])
 
 
 def peak(k, M_b=2.0):
-    return cj.simulate(cj.make_params(K_GP=k, M_b=M_b), "paper", checkpoint=False, **SETTINGS).metrics.peak_grip
+    return cj.simulate(cj.make_params(K_GP=k, M_b=M_b), "paper", checkpoint=False, check_dt=False, **SETTINGS).metrics.peak_grip
 
 
 @pytest.mark.slow
