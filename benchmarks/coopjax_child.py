@@ -136,7 +136,8 @@ def compile_vs_horizon(horizons):
     rows = []
     for integrator in IMPL:
         for T in horizons:
-            run = metrics_of(cj.Config("carry", integrator=integrator, dt=1e-3, T=T))
+            config = cj.Config("carry", integrator=integrator, dt=1e-3, T=T)
+            run = metrics_of(config)
             _, compile_s = compile_timed(jax.jit(lambda p: run(p)), params)
             rows.append(dict(integrator=integrator, T=T, n_steps=config.n_steps, compile_s=compile_s))
     return rows

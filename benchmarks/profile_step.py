@@ -1,13 +1,15 @@
-"""Where the step's time goes: `python -m benchmarks.profile_step [--B 4096] [--dtype float32]`.
+"""Where coopjax's step time goes: `python -m benchmarks.profile_step [--dtype float64] [--integrator filippov]`.
 
-Carry scenario, hard switch, dt = 1e-3, T = 1 s, one device, XLA's default flags. For each
-integrator it times, interleaved (the machine's noise is +-20 % between runs), medians of 3:
+Carry scenario, hard switch, dt = 1e-3, one device, XLA's default flags. It times, per time step
+(medians of 5, 500 steps), at batch sizes 1, 32, 256 and 1024:
 
-- `integrate`: the real loop (metrics and divergence bookkeeping);
-- the same scan with the bookkeeping removed piece by piece;
-- for plain RK4, four field evaluations per scan step: the field alone;
+- the step alone in a `lax.scan` (no metrics, no divergence bookkeeping);
+- `integrate`, the real loop (metrics, divergence).
 
-and prints XLA's cost analysis of one step (FLOP and bytes per sample-step).
+The time at B = 1 is the part of a step that does not grow with the batch (the dispatch of its
+thunks, the while loops of the pieces and stages); the growth from B = 1 to 256 (the slab one
+device runs) is the part per sample: arithmetic and memory traffic. XLA's cost analysis of one
+step gives its FLOP and bytes per sample-step (each while-loop body counted once).
 """
 
 from __future__ import annotations
@@ -16,83 +18,71 @@ import argparse
 import statistics
 import time
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--B", type=int, default=4096)
-    parser.add_argument("--dtype", default="float32", choices=("float32", "float64"))
+    parser.add_argument("--dtype", default="float64", choices=("float32", "float64"))
+    parser.add_argument("--integrator", default="filippov", choices=("filippov", "rk4"))
+    parser.add_argument("--steps", type=int, default=500)
     args = parser.parse_args(argv)
-    if args.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
     import coopjax as cj
-    from coopjax import model, objectives
-    from coopjax.integration import INTEGRATORS, SimConfig, integrate
-    from coopjax.scenarios import SCENARIOS, Clock
+    from coopjax import model
+    from coopjax.integration import INTEGRATORS
+    from coopjax.scenarios import get
+    from coopjax.simulation import metrics_of
 
-    B, n, dt = args.B, 1000, 1e-3
-    rng = np.random.default_rng(0)
-    p = cj.make_params(M_b=np.exp(rng.uniform(np.log(0.5), np.log(5), B)), K_GP=rng.uniform(0.3, 0.7, B), dtype=args.dtype)
-    scenario, options = SCENARIOS["carry"], model.Options()
-    win = objectives.window(scenario, dt, 4000)
+    n, dt, scenario = args.steps, 1e-3, get("carry")
+    integrator = INTEGRATORS[args.integrator]
+    config = cj.Config("carry", integrator=args.integrator, dt=dt, T=n * dt, dtype=args.dtype)
+    run = metrics_of(config)
 
-    def loop(method, metrics, divergence):
-        def run(p):
-            def body(carry, k):
-                y, acc, bad = carry
-                y_new, F, x_ref, F_impact = method.step(p, y, k.astype(y.dtype) * dt, dt, scenario, options)
-                if metrics:
-                    acc_new = objectives.accumulate(acc, F, x_ref, model.unpack(y)["x_r"], p, k, win, F_impact)
-                else:  # the least that keeps the step's outputs alive
-                    acc_new = acc.at[4].set(jnp.maximum(acc[4], F[0]))
-                if divergence:
-                    acc_new = jnp.where(bad[None], acc, acc_new)
-                    bad = bad | ~jnp.isfinite(y_new).all(0) | (jnp.abs(F) > 1e6).any(0)
-                    y_new = jnp.where(bad[None], y, y_new)
-                return (y_new, acc_new, bad), None
+    def step_alone(p):
+        views = model.robots(p)
 
-            carry = (model.init_state(p), objectives.init(p.batch_shape, p.M_b.dtype), jnp.zeros(p.batch_shape, bool))
-            return jax.lax.scan(body, carry, jnp.arange(n, dtype=jnp.int32))[0][1]
-
-        return jax.jit(run)
-
-    def fields_only(p):
         def body(y, k):
-            d, _ = model.vector_field(p, y, Clock.at(k.astype(y.dtype) * dt / 4), scenario, options)
-            return y + 1e-9 * d, None
+            return integrator.step(views, y, k.astype(y.dtype) * dt, dt, scenario, config.options)[0], None
 
-        return jax.lax.scan(body, model.init_state(p), jnp.arange(4 * n, dtype=jnp.int32))[0]
+        return jax.lax.scan(body, model.init_state(p), jnp.arange(n, dtype=jnp.int32))[0]
 
-    cases = {}
-    for name, method in INTEGRATORS.items():
-        config = SimConfig("carry", integrator=name, T=n * dt)
-        cases[f"{name}: integrate (metrics, divergence)"] = jax.jit(lambda p, c=config: integrate(p, c).metrics.peak_grip)
-        cases[f"{name}: step + metrics, no divergence"] = loop(method, True, False)
-        cases[f"{name}: step + divergence, no metrics"] = loop(method, False, True)
-        cases[f"{name}: step alone"] = loop(method, False, False)
-    cases["rk4: 4 field evaluations, nothing else"] = jax.jit(fields_only)
-
-    for fn in cases.values():
-        jax.block_until_ready(fn(p))
-    times = {k: [] for k in cases}
-    for _ in range(3):
-        for k, fn in cases.items():
-            t0 = time.perf_counter()
+    cases = {"step alone": jax.jit(step_alone), "integrate": jax.jit(lambda p: run(p))}
+    Bs = (1, 32, 256, 1024)
+    per_step = {name: [] for name in cases}
+    print(f"jax {jax.__version__}, {jax.device_count()} device(s), {args.integrator}, {args.dtype}, {n} steps")
+    for B in Bs:
+        rng = np.random.default_rng(0)
+        p = cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B), dtype=args.dtype)
+        line = f"  B = {B:5d}:"
+        for name, fn in cases.items():
             jax.block_until_ready(fn(p))
-            times[k].append(time.perf_counter() - t0)
-    print(f"jax {jax.__version__}, {jax.device_count()} device(s), {args.dtype}, B = {B}, {n} steps, carry, hard switch")
-    for k, ts in times.items():
-        print(f"  {k:44s} {B * n / statistics.median(ts) / 1e6:6.2f} M steps/s")
-    for name, method in INTEGRATORS.items():
-        step = jax.jit(lambda p, y, t, m=method: m.step(p, y, t, dt, scenario, options)[0])
-        cost = step.lower(p, model.init_state(p), jnp.asarray(0.5, p.M_b.dtype)).compile().cost_analysis()
-        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-        print(f"  XLA cost analysis, one {name} step: {cost.get('flops', 0) / B:.0f} FLOP and "
-              f"{cost.get('bytes accessed', 0) / B / 1e3:.1f} kB per sample-step")
-
+            times = []
+            for _ in range(5):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(p))
+                times.append(time.perf_counter() - t0)
+            per_step[name].append(statistics.median(times) / n)
+            line += f"  {name} {per_step[name][-1] * 1e6:8.1f} us/step ({B / per_step[name][-1] / 1e6:5.2f} M steps/s)"
+        print(line, flush=True)
+    rng = np.random.default_rng(0)
+    B = Bs[-1]
+    p = cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B), dtype=args.dtype)
+    single = jax.jit(lambda p, y, t: integrator.step(model.robots(p), y, t, dt, scenario, config.options)[0])
+    cost = single.lower(p, model.init_state(p), jnp.asarray(0.5, p.M_b.dtype)).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    flop, moved = cost.get("flops", 0.0) / B, cost.get("bytes accessed", 0.0) / B
+    print(f"  XLA cost analysis of one step: {flop:.0f} FLOP and {moved / 1e3:.1f} kB per sample-step "
+          "(while-loop bodies counted once)")
+    slab = Bs.index(256)  # the samples one device runs per dispatch (coopjax.devices.BLOCK)
+    for name, ts in per_step.items():
+        per_sample = (ts[slab] - ts[0]) / (Bs[slab] - 1)
+        print(f"  {name}: {ts[0] * 1e6:.1f} us per step at B = 1 (the part that does not grow with the batch: "
+              f"{100 * ts[0] / ts[slab]:.0f}% of a B = {Bs[slab]} step), then {per_sample * 1e9:.0f} ns per sample-step up "
+              f"to B = {Bs[slab]}; {ts[-1] / Bs[-1] * 1e9:.0f} ns at B = {Bs[-1]}")
 
 if __name__ == "__main__":
     main()

@@ -21,9 +21,8 @@ from coopjax.errors import InputError
 
 LARGE_BATCH = 1024  # samples: below this, one core is not worth a warning
 # Samples per device per dispatch when a batch runs over several devices: the step's working set
-# then stays in cache. On this 2-core CPU, at B = 4096 over 2 devices, blocks of 256 ran plain RK4
-# 1.8x (float32) and 1.4x (float64) faster than one dispatch of the whole batch, and the
-# sliding-mode step 1.3x (paired runs, `benchmarks/profile_step.py`'s setup).
+# then stays in cache. On this 2-core CPU, at B = 4096 over 2 devices, blocks of 256 ran the
+# sliding-mode step 1.2x to 1.4x faster than blocks of 64, 1024 or 2048 (docs/speed.md).
 BLOCK = 256
 _warned = False
 

@@ -1,42 +1,107 @@
-"""Smoke test of `python -m benchmarks --quick` at tiny sizes: it writes results.json with the
-documented fields. The gradient, memory and compile-time studies run only in the full benchmark."""
+"""The speed benchmark: its summary (in CI, from rows of known rates), the strong peer against
+coopjax and the FLOP count of its source (slow: the peer compiles for minutes), and a smoke run of
+`python -m benchmarks --quick` at tiny sizes (slow)."""
 
 import json
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from benchmarks.__main__ import summarise  # noqa: E402
+
+
+def _row(impl, dtype, devices, rate, B=4096, integrator=None):
+    row = dict(impl=impl, dtype=dtype, devices=devices, B=B, steps=4000, run_s=B * 4000 / rate, steps_per_s=rate)
+    if integrator:
+        row["integrator"] = integrator
+    return row
+
+
+def test_the_summary_states_coopjax_against_the_strong_peer_and_the_peak():
+    rows = [_row("coopjax", "float64", 2, 8e6), _row("coopjax", "float32", 2, 12e6), _row("coopjax", "float64", 1, 4e6),
+            _row("coopjax_filippov", "float64", 2, 2e6), _row("coopjax_filippov", "float32", 2, 3e6),
+            _row("strong_peer", "float64", 2, 10e6, integrator="filippov"),
+            _row("strong_peer", "float32", 2, 20e6, integrator="filippov"),
+            _row("strong_peer", "float64", 2, 16e6, integrator="rk4"),
+            _row("strong_peer", "float64", 2, 1e6, B=64, integrator="rk4"),  # another B: not the summary's
+            _row("numba", "float64", 2, 4e6)]
+    result = dict(throughput=rows, machine=dict(cores=2, peak_gflops_estimate=dict(float64=80.0, float32=160.0)),
+                  config=dict(T=4.0), lsoda=dict(seconds_per_set=0.1), peer_flops=dict(filippov=2000.0, rk4=1000.0))
+    s = summarise(result)
+    ratio = s["coopjax_over_strong_peer"]
+    assert ratio["filippov_float64"] == pytest.approx(0.2) and ratio["filippov_float32"] == pytest.approx(0.15)
+    assert ratio["rk4_float64"] == pytest.approx(0.5) and ratio["rk4_float32"] is None  # no peer row
+    # At the peer's FLOP count for both: 2e6 steps/s x 2000 FLOP = 4 GFLOP/s of 80.
+    assert s["fraction_of_peak"]["filippov_float64"] == pytest.approx(dict(coopjax=0.05, strong_peer=0.25))
+    assert s["fraction_of_peak"]["rk4_float32"]["strong_peer"] is None
+    assert s["strong_peer_steps_per_s"]["rk4_float64"] == 16e6
+    assert s["targets"]["strong peer filippov float64 >= 30 M steps/s"] is False
+    assert s["targets"]["coopjax filippov float64 (all devices) >= 0.35 x strong peer"] is False
+    assert s["targets"]["coopjax rk4 float32 (all devices) >= 0.35 x strong peer"] is None
+    assert s["coopjax_over_numba_float64"] == pytest.approx(2.0)
+
+
+@pytest.mark.slow
+def test_the_strong_peer_is_coopjax_to_1e_9():
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import coopjax as cj
+    from benchmarks.implementations import parameter_matrix
+    from benchmarks.strong_peer import METRICS, make_peer
+
+    rng = np.random.default_rng(5)
+    B = 6
+    params = cj.make_params(M_b=np.exp(rng.uniform(np.log(0.5), np.log(5.0), B)), K_GP=rng.uniform(0.05, 1.5, B),
+                            G_e=np.exp(rng.uniform(np.log(50.0), np.log(3000.0), B)))
+    ours = cj.simulate(params, "carry", check_dt=False).metrics
+    theirs = make_peer("filippov", "float64")(parameter_matrix(params), block=4)  # two blocks, one partial
+    for j, name in enumerate(METRICS):
+        a, b = np.asarray(getattr(ours, name)), theirs[j]
+        floor = 1e-9 if name in ("slip", "crush", "impact") else 0.0
+        assert np.all((np.abs(a - b) <= 1e-9 * np.abs(a) + floor) | (np.isnan(a) & np.isnan(b))), (name, a, b)
+
+
+@pytest.mark.slow
+def test_the_flop_count_of_the_peer_source():
+    # RK4 is four field evaluations of both robots a step, each some 90 operations a robot.
+    run = subprocess.run([sys.executable, "-m", "benchmarks.strong_peer", "--T", "0.05"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=600, env=dict(os.environ, NUMBA_DISABLE_JIT="1"))
+    assert run.returncode == 0, run.stderr[-2000:]
+    counts = json.loads(run.stdout.strip().splitlines()[-1])
+    assert 4 * 2 * 90 < counts["rk4"] < 4 * 2 * 200
+    assert counts["filippov"] > 1.3 * counts["rk4"]  # two fields a robot at every stage, and the plan
+    refused = subprocess.run([sys.executable, "-m", "benchmarks.strong_peer"], cwd=ROOT, capture_output=True, text=True,
+                             env={k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"})
+    assert refused.returncode == 2 and "NUMBA_DISABLE_JIT=1" in refused.stderr
 
 
 @pytest.mark.slow
 def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     out, plot = tmp_path / "results.json", tmp_path / "scaling.png"
-    run = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--max-devices", "1", "--Bs", "2", "--T", "0.05", "--repeats", "1",
-                          "--out", str(out), "--plot", str(plot)], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    run = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--max-devices", "1", "--Bs", "2", "--T", "0.05",
+                          "--repeats", "1", "--out", str(out), "--plot", str(plot)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=1800)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     result = json.load(open(out))
     assert {"jax", "cpu", "cores", "device_counts"} <= set(result["machine"])
     assert all(result["accuracy"]["ok"].values())  # every baseline matched coopjax before timing
-    impls = {(r["impl"], r["dtype"], r["devices"]) for r in result["throughput"]}
-    assert {("coopjax", "float32", 1), ("coopjax", "float64", 1), ("numpy", "float64", 1)} <= impls
-    assert {("coopjax_filippov", "float32", 1), ("coopjax_filippov", "float64", 1)} <= impls
-    assert any(i[0] == "numba" for i in impls)
+    assert {"strong_peer_filippov_metrics", "strong_peer_rk4_metrics"} <= set(result["accuracy"])
+    impls = {(r["impl"], r.get("integrator"), r["dtype"], r["devices"]) for r in result["throughput"]}
+    assert {("coopjax", "rk4", "float32", 1), ("coopjax", "rk4", "float64", 1)} <= impls
+    assert {("coopjax_filippov", "filippov", "float32", 1), ("coopjax_filippov", "filippov", "float64", 1)} <= impls
+    assert {i[:3] for i in impls} >= {("strong_peer", "filippov", "float64"), ("strong_peer", "rk4", "float64")}
     for r in result["throughput"]:
         assert r["steps_per_s"] > 0 and r["run_s"] > 0
-    assert result["lsoda"]["seconds_per_set"] > 0
-    assert "gradient" not in result  # the gradient study is left to the full run
-    assert result["flops"]["flops_per_sample_step"] > 0 and result["flops_filippov"]["flops_per_sample_step"] > 0
-    assert {"coopjax_over_lsoda_per_set", "targets", "filippov_over_rk4_cost"} <= set(result["summary"])
-    assert all(v > 0 for v in result["summary"]["filippov_over_rk4_cost"].values())
-    # Issue 12's fields (numba's sliding-mode peer is left out of --quick: its compile takes 30 s).
-    assert {"rk4_steps_per_s", "filippov_steps_per_s", "coopjax_over_numba", "converged_trajectories_per_s",
-            "compile_s", "fraction_of_peak"} <= set(result["summary"])
-    assert set(result["summary"]["targets_issue12"]) == {
-        "filippov float64 all cores >= 2 x numba filippov", "filippov_over_rk4_cost <= 2.5 (float64, all cores)",
-        "rk4 float32 all cores >= 25 M steps/s", "compile < 5 s", "compile flat in the horizon (10x the steps, < 1.5x the time)"}
-    assert result["summary"]["rk4_steps_per_s"]["float64_1_device"] > 0
-    assert result["summary"]["filippov_steps_per_s"]["float64_1_device"] > 0
+    assert result["peer_flops"]["filippov"] > result["peer_flops"]["rk4"] > 0
+    s = result["summary"]
+    assert {"coopjax_over_strong_peer", "fraction_of_peak", "strong_peer_steps_per_s", "targets",
+            "filippov_over_rk4_cost", "coopjax_over_lsoda_per_set", "compile_s"} <= set(s)
+    assert set(s["coopjax_over_strong_peer"]) == {"filippov_float32", "filippov_float64", "rk4_float32", "rk4_float64"}
     assert plot.stat().st_size > 10_000

@@ -285,42 +285,35 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, 
     """RK4 over the next piece of a step: up to the first event predicted at its start, or the rest
     of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit.
 
-    The four stages run as a `lax.scan` over the tableau (the first at A = 0, from k = 0): one
-    stage body for XLA to compile instead of a chain of them. The first stage is the substep's
-    start: its fields give the plan (length and overrides) and the fractions theta for all four.
-    Returns the new state, the plan, the signals and both contact forces at the start.
+    The first stage is the substep's start: its fields give the plan (length and overrides) and
+    the fractions theta for all four. Returns the new state, the plan and the signals at the start.
     """
     # Every stage's theta uses sigma at the substep start (step 2 of the weight): the contact alone.
     no = jnp.zeros_like(on[0])
     sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, Contact(on, (no, no))), ps))
-    start = Plan(remaining, on, (no, no), (jnp.full(no.shape, -1), jnp.full(no.shape, -1)), (no, no))
+    # The first stage, at the substep's start: its fields give the plan (length and overrides), the
+    # fractions theta that serve all four stages, and the signals. Outside the stage loop, so the
+    # other three stages do not compute (and discard) them.
+    unheld = jnp.full(no.shape, -1)
+    fs, body = fields(ps, rows, clock, Contact(on, (no, no), (unheld, unheld)), scenario, options)
+    part = plan(ps, rows, fs, body, remaining, on, dt, options, last)
+    thetas = tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n))
+    contact = Contact(part.on, part.off, part.hold)
+    k = _rates(fs, body, sigma_n, part.h, contact, thetas)
+    weights = tuple(weight(f, s_n, part.h, hold, theta) for f, s_n, hold, theta in zip(fs, sigma_n, part.hold, thetas))
+    signals = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights)))))
 
     def stage(carry, tableau):
-        k_prev, total, part, thetas, signals = carry
+        k_prev, total = carry
         a, b = tableau
-        first = a == 0.0
-        contact = Contact(part.on, part.off, part.hold)
         fs, body = fields(ps, _axpy(rows, a * part.h, k_prev), clock.advance(a * part.h), contact, scenario, options)
-        # At the substep's start: its plan, and the fractions that serve all four stages.
-        part = jax.tree_util.tree_map(lambda new, old: jnp.where(first, new, old),
-                                      plan(ps, rows, fs, body, remaining, on, dt, options, last), part)
-        thetas = jax.tree_util.tree_map(lambda new, old: jnp.where(first, new, old),
-                                        tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n)), thetas)
-        contact = Contact(part.on, part.off, part.hold)
         k = _rates(fs, body, sigma_n, part.h, contact, thetas)
-        weights = tuple(weight(f, s_n, part.h, hold, theta) for f, s_n, hold, theta in zip(fs, sigma_n, part.hold, thetas))
-        signals = jax.tree_util.tree_map(
-            lambda new, old: jnp.where(first, new, old),
-            model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights))))), signals)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k), part, thetas, signals), None
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), None
 
-    tableau = (jnp.asarray(RK4_A, remaining.dtype), jnp.asarray(RK4_B, remaining.dtype))
-    # 0 x rows rather than zeros: under jvp and vmap the stage scan's carry then has its tangents and
-    # batch axes from the start, and the scan is traced once instead of until they settle.
-    zero = jax.tree_util.tree_map(lambda x: 0.0 * x, rows)
-    unset = tuple((0.0 * remaining, 0.0 * remaining) for _ in range(2))
-    signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
-    (_, total, part, _, signals), _ = jax.lax.scan(stage, (zero, zero, start, unset, signals0), tableau)
+    # The other three stages as a `lax.scan` over the tableau: one stage body for XLA to compile
+    # instead of three copies.
+    tableau = (jnp.asarray(RK4_A[1:], remaining.dtype), jnp.asarray(RK4_B[1:], remaining.dtype))
+    (_, total), _ = jax.lax.scan(stage, (k, k), tableau)
     return _axpy(rows, part.h / 6, total), part, signals
 
 

@@ -1,0 +1,669 @@
+"""The strong peer: coopjax's two hard-switch steps and the carry metrics, written as a hand-tuned
+CPU kernel in numba. It is what an engineer who knows the machine would write instead of coopjax.
+
+    run = make_peer("filippov", "float64")   # or "rk4"; "float32"
+    metrics = run(P, dt=1e-3, T=4.0)         # P from benchmarks.implementations.parameter_matrix
+
+Both steps are coopjax's, operation for operation (coopjax/integration/filippov.py and
+plain_rk4.py): the sliding-mode step with its located events (an impact, the force reaching F_lim,
+the Kelvin-Voigt force passing 0) in up to three pieces a step, and plain RK4 on the hard switch.
+The metrics are coopjax's carry metrics over the force's path through each step (min_grip,
+peak_grip, slip, crush, impact, rms_lag) with the same divergence rule. Unilateral contact,
+alpha_b = 1, delta0 = 0; `benchmarks.__main__` checks the peer against coopjax before timing it.
+
+Its shape is the one a C kernel of this step would have:
+- struct of arrays, the batch innermost and contiguous: every state and parameter is a row of a
+  block, and one loop over the block's samples does a whole (sub)step of one sample in registers;
+- no data-dependent branch inside that loop (conditional expressions, which LLVM turns into
+  selects), numpy's error model (no Python division check), no bounds checks;
+- `prange` over blocks, the time loop inside the block: a block's state stays in L1 for the run;
+- a piece of the step that no sample of the block needs is skipped for the block (coopjax skips
+  it for the slab one device holds);
+- float32 and float64 are separate compilations with typed constants, so float32 stays float32.
+
+What numba does not do with it: vectorise the loop over the block. Its small parts vectorise
+alone (the command, the contact, one robot's rates), but LLVM's loop vectorizer gives up on the
+whole step ("loop not vectorized: instruction cannot be vectorized" with
+`llvmlite.binding.set_option("", "-pass-remarks-missed=loop-vectorize")`), so each sample runs in
+scalar code: docs/model.md's speed section gives the figures.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import math as _math
+
+import numpy as np
+
+from benchmarks.implementations import PER_ROBOT
+
+N_METRICS = 8  # min_grip, peak_grip, slip, crush, impact, rms_lag, finite, t_diverged
+METRICS = ("min_grip", "peak_grip", "slip", "crush", "impact", "rms_lag")
+BLOCK = 64  # samples per block: 20 state rows x 64 x 8 B = 10 kB, in L1 with the block's parameters
+
+
+
+def vectorising_llvm():
+    """LLVM options without which the loop over a block stays scalar (process-wide, in this process).
+
+    - `-inline-threshold`: numba compiles each helper apart and LLVM inlines only small ones; a call
+      left in the loop stops its vectorisation (`-pass-remarks-missed=loop-vectorize` says "call
+      instruction cannot be vectorized");
+    - the runtime memory-check thresholds: the loop reads and writes some twenty rows of the block,
+      and LLVM gives up at 8 (or 128) pointer comparisons ("too many memory checks needed").
+    """
+    import llvmlite.binding as llvm
+
+    for option in ("-inline-threshold=100000", "-runtime-memory-check-threshold=100000",
+                   "-vectorize-memory-check-threshold=100000"):
+        llvm.set_option("", option)
+
+
+@functools.lru_cache(maxsize=None)
+def make_peer(step: str = "filippov", dtype: str = "float64"):
+    """The compiled peer for a step ("filippov" or "rk4") and a dtype; compiles on first call."""
+    import numba
+
+    T = np.dtype(dtype).type
+    Z0, ONE, TWO, HALF = T(0.0), T(1.0), T(2.0), T(0.5)
+    TWO_PI = T(2.0 * math.pi)
+    INV_TWO_PI = T(1.0) / TWO_PI
+    INF = T(np.inf)
+    EPS = T(1e-9)  # as coopjax.integration.filippov.EPS
+    SHORTEST = T(1e-2)  # as filippov.SHORTEST_EVENT
+    C2, C12, C30, C56, C90 = T(2.0), T(12.0), T(30.0), T(56.0), T(90.0)
+    C6, C20, C42, C72, C110 = T(6.0), T(20.0), T(42.0), T(72.0), T(110.0)
+    base = 2 * len(PER_ROBOT)
+    vectorising_llvm()
+    jit = functools.partial(numba.njit, error_model="numpy", fastmath=False, boundscheck=False)
+    inline = jit  # LLVM inlines them (see `vectorising_llvm`); numba's IR inlining compiled for minutes
+    (iMv, iMr, iKg, iRg, iMc, iRc, iKc, iMf, iRf, iKf, imu, ibeta, iFlim, iKini, iKGP, iKGI, itau, itaue, iGe,
+     irho) = (2 * j for j in range(len(PER_ROBOT)))
+
+    @inline
+    def small(x):
+        """cos x, sin x by their Taylor series (Clock.advance)."""
+        x2 = x * x
+        c = ONE - x2 / C2 * (ONE - x2 / C12 * (ONE - x2 / C30 * (ONE - x2 / C56 * (ONE - x2 / C90))))
+        s = x * (ONE - x2 / C6 * (ONE - x2 / C20 * (ONE - x2 / C42 * (ONE - x2 / C72 * (ONE - x2 / C110)))))
+        return c, s
+
+    @inline
+    def advance(t, cos, sin, u):
+        c, s = small(TWO_PI * u)
+        return t + u, cos * c - sin * s, sin * c + cos * s
+
+    @inline
+    def bump(t, cos, sin, t0):
+        """The unit rest-to-rest bump starting at whole second t0 (scenarios.bump)."""
+        u = t - t0
+        inside = (u >= Z0) and (u < ONE)
+        v = (ONE - cos) if inside else Z0
+        a = (TWO_PI * sin) if inside else Z0
+        x = Z0 if u < Z0 else ((u - sin * INV_TWO_PI) if inside else ONE)
+        return v, a, x
+
+    @inline
+    def command(P, b, t, cos, sin, s):
+        """(v_cmd, a_cmd, x_ref) of the robot with sign s (scenarios/carry.py)."""
+        gv, ga, gx = bump(t, cos, sin, Z0)
+        cv, ca, cx = bump(t, cos, sin, ONE)
+        rv, ra, rx = bump(t, cos, sin, TWO)
+        sA = s * P[base + 1, b]
+        A_c = P[base + 2, b]
+        return (sA * gv + A_c * cv - TWO * sA * rv, sA * ga + A_c * ca - TWO * sA * ra,
+                sA * gx + A_c * cx - TWO * sA * rx)
+
+    @inline
+    def rates(P, i, b, s, x_r, v_r, v_v, q_c, x_f, v_f, Z, Y_e, F, on, F_c, cmd):
+        """Robot i's nine rates under the switch-off field (on = False, force F) or the switch-on field
+        (on = True, gamma and dZ/dt from the clamped force F_c): model.robot_field, alpha_b = 1."""
+        v_cmd, a_cmd, x_ref = cmd
+        F_lim = P[iFlim + i, b]
+        if on:
+            gamma = ONE - (P[iKini + i, b] + P[iKGP + i, b] * (F_c - F_lim) + P[iKGI + i, b] * Z)
+            dZ = (F_c - F_lim) - P[itau + i, b] * Z
+            dY = -P[itaue + i, b] * Y_e - P[irho + i, b] * Y_e
+            v_ref = v_cmd
+            a_ref = a_cmd
+        else:
+            gamma = ONE
+            dZ = -P[itau + i, b] * Z - P[irho + i, b] * Z
+            dY = (x_ref - x_r) - P[itaue + i, b] * Y_e
+            v_ref = v_cmd + P[iGe + i, b] * Y_e
+            a_ref = a_cmd + P[iGe + i, b] * dY
+        M_c, M_r, M_f, mu = P[iMc + i, b], P[iMr + i, b], P[iMf + i, b], P[imu + i, b]
+        g = (ONE - gamma) * P[ibeta + i, b]
+        err = v_ref - v_r - g * v_f
+        D = M_c * a_ref + P[iRc + i, b] * err + P[iKc + i, b] * q_c
+        h = P[iRf + i, b] * v_f + P[iKf + i, b] * x_f
+        f_ext = -s * F
+        e_c = (D - M_c * f_ext / M_r + M_c * g * h / M_f) / (ONE + M_c * mu / M_r + M_c * g / M_f)
+        return v_r, (mu * e_c + f_ext) / M_r, v_v, -mu * e_c / P[iMv + i, b], err, v_f, (e_c - h) / M_f, dZ, dY
+
+    @inline
+    def geometry(P, i, b, s, x_r, v_r, x_o, v_o):
+        delta = s * (x_r - x_o)
+        delta_dot = s * (v_r - v_o)
+        return delta, delta_dot, P[iKg + i, b] * delta + P[iRg + i, b] * delta_dot
+
+    @inline
+    def force(kelvin, touching):
+        return max(kelvin, Z0) if touching else Z0
+
+    @inline
+    def axpy(y, c, k):
+        """y + c k for 20-tuples, written out: LLVM vectorises only innermost loops, so the loop over
+        the block must contain no loop of its own."""
+        return (y[0] + c * k[0], y[1] + c * k[1], y[2] + c * k[2], y[3] + c * k[3], y[4] + c * k[4], y[5] + c * k[5], y[6] + c * k[6], y[7] + c * k[7], y[8] + c * k[8], y[9] + c * k[9], y[10] + c * k[10], y[11] + c * k[11], y[12] + c * k[12], y[13] + c * k[13], y[14] + c * k[14], y[15] + c * k[15], y[16] + c * k[16], y[17] + c * k[17], y[18] + c * k[18], y[19] + c * k[19])
+
+    @inline
+    def weighted(k1, k2, k3, k4):
+        """k1 + 2 k2 + 2 k3 + k4 for 20-tuples (RK4's weights)."""
+        return (k1[0] + TWO * k2[0] + TWO * k3[0] + k4[0], k1[1] + TWO * k2[1] + TWO * k3[1] + k4[1], k1[2] + TWO * k2[2] + TWO * k3[2] + k4[2], k1[3] + TWO * k2[3] + TWO * k3[3] + k4[3], k1[4] + TWO * k2[4] + TWO * k3[4] + k4[4], k1[5] + TWO * k2[5] + TWO * k3[5] + k4[5], k1[6] + TWO * k2[6] + TWO * k3[6] + k4[6], k1[7] + TWO * k2[7] + TWO * k3[7] + k4[7], k1[8] + TWO * k2[8] + TWO * k3[8] + k4[8], k1[9] + TWO * k2[9] + TWO * k3[9] + k4[9], k1[10] + TWO * k2[10] + TWO * k3[10] + k4[10], k1[11] + TWO * k2[11] + TWO * k3[11] + k4[11], k1[12] + TWO * k2[12] + TWO * k3[12] + k4[12], k1[13] + TWO * k2[13] + TWO * k3[13] + k4[13], k1[14] + TWO * k2[14] + TWO * k3[14] + k4[14], k1[15] + TWO * k2[15] + TWO * k3[15] + k4[15], k1[16] + TWO * k2[16] + TWO * k3[16] + k4[16], k1[17] + TWO * k2[17] + TWO * k3[17] + k4[17], k1[18] + TWO * k2[18] + TWO * k3[18] + k4[18], k1[19] + TWO * k2[19] + TWO * k3[19] + k4[19])
+
+    @inline
+    def load(y, b):
+        return (y[0, b], y[1, b], y[2, b], y[3, b], y[4, b], y[5, b], y[6, b], y[7, b], y[8, b], y[9, b], y[10, b], y[11, b], y[12, b], y[13, b], y[14, b], y[15, b], y[16, b], y[17, b], y[18, b], y[19, b])
+
+    @inline
+    def store(y, b, v):
+        y[0, b] = v[0]
+        y[1, b] = v[1]
+        y[2, b] = v[2]
+        y[3, b] = v[3]
+        y[4, b] = v[4]
+        y[5, b] = v[5]
+        y[6, b] = v[6]
+        y[7, b] = v[7]
+        y[8, b] = v[8]
+        y[9, b] = v[9]
+        y[10, b] = v[10]
+        y[11, b] = v[11]
+        y[12, b] = v[12]
+        y[13, b] = v[13]
+        y[14, b] = v[14]
+        y[15, b] = v[15]
+        y[16, b] = v[16]
+        y[17, b] = v[17]
+        y[18, b] = v[18]
+        y[19, b] = v[19]
+
+    # --- the sliding-mode step -------------------------------------------------------------------
+
+    @inline
+    def robot_fields(P, i, b, s, st, x_o, v_o, a_o, F, in_c, kelvin, delta_dot, cmd):
+        """Both fields of robot i and the switching data (filippov.fields)."""
+        x_r, v_r, x_v, v_v, q_c, x_f, v_f, Z, Y_e = st
+        F_lim = P[iFlim + i, b]
+        r0 = rates(P, i, b, s, x_r, v_r, v_v, q_c, x_f, v_f, Z, Y_e, F, False, F, cmd)
+        r1 = rates(P, i, b, s, x_r, v_r, v_v, q_c, x_f, v_f, Z, Y_e, F, True, max(F, F_lim), cmd)
+        sd0 = P[iKg + i, b] * delta_dot + P[iRg + i, b] * s * (r0[1] - a_o)
+        sd1 = P[iKg + i, b] * delta_dot + P[iRg + i, b] * s * (r1[1] - a_o)
+        sigma = (kelvin if in_c else Z0) - F_lim
+        return r0, r1, sd0, sd1, sigma
+
+    @inline
+    def lam_of(sd0, sd1, sigma_n, theta_b, theta_a, hold, in_c):
+        """filippov.weight with the substep start's fractions."""
+        d = sd0 - sd1
+        lam_star = min(max(sd0 / d, Z0), ONE) if d > EPS else (ONE if sd0 >= Z0 else Z0)
+        lam = (ONE - theta_b) * lam_star if sigma_n < Z0 else theta_a + (ONE - theta_a) * lam_star
+        lam = T(hold) if hold >= 0 else lam
+        return lam if in_c else Z0
+
+    @inline
+    def blend(r0, r1, lam):
+        return (r0[0], r0[1] + lam * (r1[1] - r0[1]), r0[2], r0[3] + lam * (r1[3] - r0[3]),
+                r0[4] + lam * (r1[4] - r0[4]), r0[5], r0[6] + lam * (r1[6] - r0[6]), r0[7] + lam * (r1[7] - r0[7]),
+                r0[8] + lam * (r1[8] - r0[8]))
+
+    @inline
+    def fractions(sd0, sd1, sigma_n, h):
+        below = sd0 * h > Z0
+        theta_b = min(max(-sigma_n / (sd0 * h), Z0), ONE) if below else ONE
+        above = -sd1 * h > Z0
+        theta_a = min(max(sigma_n / (-sd1 * h), Z0), ONE) if above else ONE
+        return theta_b, theta_a
+
+    @inline
+    def switching_time(in_c, sigma, sd0, sd1, F_lim, shortest):
+        below = in_c and (sigma < Z0) and (sd0 > Z0)
+        above = in_c and (sigma > Z0) and (sd1 < Z0)
+        rate = sd0 if below else (-sd1 if above else ONE)
+        tau = abs(sigma) / rate if (below or above) else INF
+        tau = tau if tau > shortest else INF
+        kelvin = sigma + F_lim
+        crossing = in_c and (F_lim > Z0) and (kelvin * sd0 < Z0)
+        tau0 = abs(kelvin) / abs(sd0) if crossing else INF
+        tau0 = tau0 if tau0 > shortest else INF
+        first = min(tau, tau0)
+        hold = (1 if above else 0) if tau <= tau0 else -1
+        return first, (hold if first < INF else -1)
+
+    @inline
+    def impact_time(delta, delta_dot, s, a_r_off, a_o):
+        delta_ddot = s * (a_r_off - a_o)
+        disc = delta_dot * delta_dot - TWO * delta_ddot * delta
+        real = (delta <= Z0) and (disc > Z0)
+        den = delta_dot + math.sqrt(disc if real else ONE)
+        hits = real and (den > Z0)
+        return -TWO * delta / den if hits else INF
+
+    @inline
+    def evaluate(P, b, y, t, cos, sin, on_L, on_R, off_L, off_R):
+        """Both robots' fields at state y (a 20-tuple, coopjax's row order) and the body's a_o."""
+        x_o, v_o = y[18], y[19]
+        stL = (y[0], y[2], y[4], y[6], y[8], y[10], y[12], y[14], y[16])
+        stR = (y[1], y[3], y[5], y[7], y[9], y[11], y[13], y[15], y[17])
+        dL, ddL, kL = geometry(P, 0, b, ONE, stL[0], stL[1], x_o, v_o)
+        dR, ddR, kR = geometry(P, 1, b, -ONE, stR[0], stR[1], x_o, v_o)
+        inL = on_L or ((not off_L) and dL > Z0)
+        inR = on_R or ((not off_R) and dR > Z0)
+        FL, FR = force(kL, inL), force(kR, inR)
+        a_o = (FL - FR) / P[base, b]
+        fL = robot_fields(P, 0, b, ONE, stL, x_o, v_o, a_o, FL, inL, kL, ddL, command(P, b, t, cos, sin, ONE))
+        fR = robot_fields(P, 1, b, -ONE, stR, x_o, v_o, a_o, FR, inR, kR, ddR, command(P, b, t, cos, sin, -ONE))
+        return fL, fR, inL, inR, FL, FR, a_o, dL, ddL, dR, ddR
+
+    @inline
+    def assemble(rL, rR, v_o, a_o):
+        return (rL[0], rR[0], rL[1], rR[1], rL[2], rR[2], rL[3], rR[3], rL[4], rR[4], rL[5], rR[5], rL[6], rR[6],
+                rL[7], rR[7], rL[8], rR[8], v_o, a_o)
+
+    @inline
+    def sigma_n_of(P, b, y, on_L, on_R):
+        dL, _, kL = geometry(P, 0, b, ONE, y[0], y[2], y[18], y[19])
+        dR, _, kR = geometry(P, 1, b, -ONE, y[1], y[3], y[18], y[19])
+        return ((kL if (on_L or dL > Z0) else Z0) - P[iFlim, b], (kR if (on_R or dR > Z0) else Z0) - P[iFlim + 1, b])
+
+    @inline
+    def stage(P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR):
+        """One of the stages after the first: the rates at y + c k, t + c, with the substep's plan."""
+        ys = axpy(y, c, k)
+        ts, cs, ss = advance(t, cos, sin, c)
+        gL, gR, jL, jR, _, _, a_s, _, _, _, _ = evaluate(P, b, ys, ts, cs, ss, on_L, on_R, impL, impR)
+        lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL)
+        lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR)
+        return assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s)
+
+    @inline
+    def substep(P, b, y, t, cos, sin, remaining, on_L, on_R, dt, last):
+        """filippov.substep for one sample: the new state, the plan and the start's force."""
+        sn_L, sn_R = sigma_n_of(P, b, y, on_L, on_R)
+        fL, fR, inL, inR, FL, FR, a_o, dL, ddL, dR, ddR = evaluate(P, b, y, t, cos, sin, on_L, on_R, False, False)
+        # The plan (filippov.plan), from the start's fields.
+        shortest = SHORTEST * dt
+        tauL, holdL = switching_time(inL, fL[4], fL[2], fL[3], P[iFlim, b], shortest)
+        tauR, holdR = switching_time(inR, fR[4], fR[2], fR[3], P[iFlim + 1, b], shortest)
+        hitL = INF if on_L else impact_time(dL, ddL, ONE, fL[0][1], a_o)
+        hitR = INF if on_R else impact_time(dR, ddR, -ONE, fR[0][1], a_o)
+        timeL, timeR = min(tauL, hitL), min(tauR, hitR)
+        holdL = -1 if hitL < tauL else holdL
+        holdR = -1 if hitR < tauR else holdR
+        h = remaining if last else min(min(timeL, timeR), remaining)
+        firstL = (timeL <= h) and (timeL <= remaining) and not last
+        firstR = (timeR <= h) and (timeR <= remaining) and not last
+        impL, impR = firstL and hitL <= tauL, firstR and hitR <= tauR
+        holdL = holdL if firstL else -1
+        holdR = holdR if firstR else -1
+        tbL, taL = fractions(fL[2], fL[3], sn_L, h)
+        tbR, taR = fractions(fR[2], fR[3], sn_R, h)
+        # Stage 0 (at the start), then the three others.
+        lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL)
+        lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR)
+        k = assemble(blend(fL[0], fL[1], lamL), blend(fR[0], fR[1], lamR), y[19], a_o)
+        k2 = stage(P, b, y, k, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
+        k3 = stage(P, b, y, k2, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
+        k4 = stage(P, b, y, k3, h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
+        total = weighted(k, k2, k3, k4)
+        return total, h, impL, impR, holdL >= 0, holdR >= 0, FL, FR
+
+    @inline
+    def forces_at(P, b, y, on_L, on_R, off_L, off_R):
+        dL, _, kL = geometry(P, 0, b, ONE, y[0], y[2], y[18], y[19])
+        dR, _, kR = geometry(P, 1, b, -ONE, y[1], y[3], y[18], y[19])
+        return force(kL, on_L or ((not off_L) and dL > Z0)), force(kR, on_R or ((not off_R) and dR > Z0))
+
+    # --- plain RK4 on the hard switch --------------------------------------------------------------
+
+    @inline
+    def rates_w(P, i, b, s, x_r, v_r, v_v, q_c, x_f, v_f, Z, Y_e, F, w, cmd):
+        """Robot i's nine rates for a switch value w (model.robot_field, alpha_b = 1)."""
+        v_cmd, a_cmd, x_ref = cmd
+        F_lim = P[iFlim + i, b]
+        off = ONE - w
+        gamma = ONE - w * (P[iKini + i, b] + P[iKGP + i, b] * (F - F_lim) + P[iKGI + i, b] * Z)
+        dZ = w * (F - F_lim) - P[itau + i, b] * Z - off * (P[irho + i, b] * Z)
+        dY = off * (x_ref - x_r) - P[itaue + i, b] * Y_e - w * (P[irho + i, b] * Y_e)
+        v_ref = v_cmd + off * (P[iGe + i, b] * Y_e)
+        a_ref = a_cmd + off * (P[iGe + i, b] * dY)
+        M_c, M_r, M_f, mu = P[iMc + i, b], P[iMr + i, b], P[iMf + i, b], P[imu + i, b]
+        g = (ONE - gamma) * P[ibeta + i, b]
+        err = v_ref - v_r - g * v_f
+        D = M_c * a_ref + P[iRc + i, b] * err + P[iKc + i, b] * q_c
+        h = P[iRf + i, b] * v_f + P[iKf + i, b] * x_f
+        f_ext = -s * F
+        e_c = (D - M_c * f_ext / M_r + M_c * g * h / M_f) / (ONE + M_c * mu / M_r + M_c * g / M_f)
+        return v_r, (mu * e_c + f_ext) / M_r, v_v, -mu * e_c / P[iMv + i, b], err, v_f, (e_c - h) / M_f, dZ, dY
+
+    @inline
+    def hard_field(P, b, y, t, cos, sin):
+        x_o, v_o = y[18], y[19]
+        dL, _, kL = geometry(P, 0, b, ONE, y[0], y[2], x_o, v_o)
+        dR, _, kR = geometry(P, 1, b, -ONE, y[1], y[3], x_o, v_o)
+        FL, FR = force(kL, dL > Z0), force(kR, dR > Z0)
+        cL, cR = command(P, b, t, cos, sin, ONE), command(P, b, t, cos, sin, -ONE)
+        wL = ONE if FL >= P[iFlim, b] else Z0
+        wR = ONE if FR >= P[iFlim + 1, b] else Z0
+        rL = rates_w(P, 0, b, ONE, y[0], y[2], y[6], y[8], y[10], y[12], y[14], y[16], FL, wL, cL)
+        rR = rates_w(P, 1, b, -ONE, y[1], y[3], y[7], y[9], y[11], y[13], y[15], y[17], FR, wR, cR)
+        return assemble(rL, rR, v_o, (FL - FR) / P[base, b])
+
+    # --- the loop, the metrics --------------------------------------------------------------------
+
+    @inline
+    def sq(x):
+        return x * x
+
+    @inline
+    def pieces_of(P, b, F_max, s0L, s0R, e0L, e0R, frac):
+        """One piece's trapezoidal integrals of slip (lower) and crush (upper) excess squared."""
+        FlL, FlR = P[iFlim, b], P[iFlim + 1, b]
+        slip = HALF * frac * (sq(max(FlL - s0L, Z0)) + sq(max(FlL - e0L, Z0))) \
+            + HALF * frac * (sq(max(FlR - s0R, Z0)) + sq(max(FlR - e0R, Z0)))
+        crush = HALF * frac * (sq(max(s0L - F_max, Z0)) + sq(max(e0L - F_max, Z0))) \
+            + HALF * frac * (sq(max(s0R - F_max, Z0)) + sq(max(e0R - F_max, Z0)))
+        return slip, crush
+
+    filippov = step == "filippov"
+
+    # Each loop over a block is a function of its own: LLVM vectorises a loop only if no value it
+    # computes is used after it, and in one long function numba keeps every loop's names alive.
+
+    @inline
+    def sample_loop(P, S, t, cos_t, sin_t, in_grip, in_lag, dt):
+        """The sample at t_k: forces and the lag (objectives), and the step's setup."""
+        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
+         hs, sLa, sRa, sfLa, sfRa) = S
+        for b in range(P.shape[1]):
+            yb = load(y, b)
+            FL, FR = forces_at(P, b, yb, False, False, False, False)
+            xL = command(P, b, t, cos_t, sin_t, ONE)[2]
+            xR = command(P, b, t, cos_t, sin_t, -ONE)[2]
+            keep = not diverged[b]
+            leastL[b] = min(leastL[b], FL) if (keep and in_grip) else leastL[b]
+            leastR[b] = min(leastR[b], FR) if (keep and in_grip) else leastR[b]
+            peakL[b] = max(peakL[b], FL) if keep else peakL[b]
+            peakR[b] = max(peakR[b], FR) if keep else peakR[b]
+            lag[b] = lag[b] + (sq(xL - yb[0]) + sq(xR - yb[1])) if (keep and in_lag) else lag[b]
+            F0L[b], F0R[b] = FL, FR
+            FeL[b], FeR[b] = FL, FR
+            rem[b] = dt
+            off[b] = Z0
+            onL[b] = False
+            onR[b] = False
+            store(yn, b, yb)
+
+    @inline
+    def piece_loop(P, S, t, cos_t, sin_t, dt, last, step_in_grip, after, F_max):
+        """One piece of the sliding-mode step for every sample of the block, and its path's metrics."""
+        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
+         hs, sLa, sRa, sfLa, sfRa) = S
+        for b in range(P.shape[1]):
+            yb = load(yn, b)
+            tb, cb, sb = advance(t, cos_t, sin_t, off[b])
+            total, h, iL, iR, sfL, sfR, sL, sR = substep(P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], dt, last)
+            new = axpy(yb, h / T(6.0), total)
+            eL, eR = forces_at(P, b, new, onL[b], onR[b], iL, iR)
+            store(yn, b, new)
+            rem[b] = rem[b] - h
+            off[b] = off[b] + h
+            onL[b], onR[b] = iL, iR
+            FeL[b], FeR[b] = eL, eR
+            hs[b], sLa[b], sRa[b], sfLa[b], sfRa[b] = h, sL, sR, sfL, sfR
+        # The piece's path, in a loop of its own (in the step's loop it kept it from vectorising): the
+        # peak at its ends, the means' trapezoids, the least force at a located event (not after the
+        # last piece).
+        for b in range(P.shape[1]):
+            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], onL[b], onR[b], sfLa[b], sfRa[b]
+            keep = not diverged[b]
+            s_, c_ = pieces_of(P, b, F_max, sL, sR, eL, eR, h / dt)
+            peakL[b] = max(peakL[b], max(sL, eL)) if keep else peakL[b]
+            peakR[b] = max(peakR[b], max(sR, eR)) if keep else peakR[b]
+            slip[b] = slip[b] + dt * s_ if (keep and step_in_grip) else slip[b]
+            crush[b] = crush[b] + dt * c_ if (keep and step_in_grip) else crush[b]
+            impact[b] = impact[b] + dt * c_ if (keep and after) else impact[b]
+            evL = eL if iL else (P[iFlim, b] if sfL else INF)
+            evR = eR if iR else (P[iFlim + 1, b] if sfR else INF)
+            counted = keep and step_in_grip and not last
+            leastL[b] = min(leastL[b], evL) if counted else leastL[b]
+            leastR[b] = min(leastR[b], evR) if counted else leastR[b]
+
+    @inline
+    def busy(rem):
+        for b in range(rem.shape[0]):
+            if rem[b] > Z0:
+                return True
+        return False
+
+    @inline
+    def rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, after, F_max):
+        """A plain RK4 step for every sample of the block, and its path's metrics."""
+        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
+         hs, sLa, sRa, sfLa, sfRa) = S
+        dt2 = dt / TWO
+        dt6 = dt / T(6.0)
+        tm, cm, sm = advance(t, cos_t, sin_t, dt2)
+        te, ce, se = advance(t, cos_t, sin_t, dt)
+        for b in range(P.shape[1]):
+            yb = load(y, b)  # equal to yn here; reading one array and writing another
+            k1 = hard_field(P, b, yb, t, cos_t, sin_t)
+            k2 = hard_field(P, b, axpy(yb, dt2, k1), tm, cm, sm)
+            k3 = hard_field(P, b, axpy(yb, dt2, k2), tm, cm, sm)
+            k4 = hard_field(P, b, axpy(yb, dt, k3), te, ce, se)
+            store(yn, b, axpy(yb, dt6, weighted(k1, k2, k3, k4)))
+        # The metrics in a loop of their own: in the step's loop they kept it from vectorising.
+        for b in range(P.shape[1]):
+            eL, eR = forces_at(P, b, load(yn, b), False, False, False, False)
+            sL, sR = F0L[b], F0R[b]
+            keep = not diverged[b]
+            s_, c_ = pieces_of(P, b, F_max, sL, sR, eL, eR, ONE)
+            peakL[b] = max(peakL[b], max(sL, eL)) if keep else peakL[b]
+            peakR[b] = max(peakR[b], max(sR, eR)) if keep else peakR[b]
+            slip[b] = slip[b] + dt * s_ if (keep and step_in_grip) else slip[b]
+            crush[b] = crush[b] + dt * c_ if (keep and step_in_grip) else crush[b]
+            impact[b] = impact[b] + dt * c_ if (keep and after) else impact[b]
+
+    @inline
+    def divergence_loop(P, S, t, dt, F_bound):
+        """integration/loop.py's rule: a non-finite state or an absurd force at the step's start
+        freezes the sample at its last good state."""
+        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
+         hs, sLa, sRa, sfLa, sfRa) = S
+        for b in range(P.shape[1]):
+            bad = abs(F0L[b]) > F_bound or abs(F0R[b]) > F_bound
+            for r in range(20):
+                bad = bad or not math.isfinite(yn[r, b])
+            t_div[b] = t + dt if (bad and not diverged[b]) else t_div[b]
+            diverged[b] = diverged[b] or bad
+            if not diverged[b]:
+                for r in range(20):
+                    y[r, b] = yn[r, b]
+
+    @jit
+    def run_block(P, dt, n, g0, g1, l0, l1, F_bound, F_max, out):
+        """One block of the batch over the whole run; writes its metrics (N_METRICS, m) into out."""
+        m = P.shape[1]
+        S = (np.zeros((20, m), P.dtype), np.zeros((20, m), P.dtype), np.empty(m, P.dtype), np.empty(m, P.dtype),
+             np.zeros(m, np.bool_), np.zeros(m, np.bool_), np.empty(m, P.dtype), np.empty(m, P.dtype),
+             np.empty(m, P.dtype), np.empty(m, P.dtype), np.full(m, INF, P.dtype), np.full(m, INF, P.dtype),
+             np.full(m, -INF, P.dtype), np.full(m, -INF, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype),
+             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.full(m, INF, P.dtype),
+             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_))
+        for k in range(n + 1):
+            t = T(k) * dt
+            cos_t, sin_t = T(math.cos(TWO_PI * t)), T(math.sin(TWO_PI * t))
+            step_in_grip = (k >= g0) and (k < g1)
+            sample_loop(P, S, t, cos_t, sin_t, (k >= g0) and (k <= g1), (k >= l0) and (k <= l1), dt)
+            if k == n:
+                break
+            if filippov:
+                for j in range(3):
+                    if j > 0 and not busy(S[2]):
+                        break
+                    piece_loop(P, S, t, cos_t, sin_t, dt, j == 2, step_in_grip, k >= g1, F_max)
+            else:
+                rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, k >= g1, F_max)
+            divergence_loop(P, S, t, dt, F_bound)
+        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
+         hs, sLa, sRa, sfLa, sfRa) = S
+        grip_span = T(max(0, g1 - g0)) * dt
+        after_span = T(max(0, n - g1)) * dt
+        n_lag = max(0, l1 - l0 + 1)
+        nan = T(np.nan)
+        for b in range(m):
+            d = diverged[b]
+            out[0, b] = nan if (d or grip_span == Z0) else min(leastL[b], leastR[b])
+            out[1, b] = nan if d else max(peakL[b], peakR[b])
+            out[2, b] = nan if (d or grip_span == Z0) else slip[b] / grip_span
+            out[3, b] = nan if (d or grip_span == Z0) else crush[b] / grip_span
+            out[4, b] = nan if (d or after_span == Z0) else impact[b] / after_span
+            out[5, b] = nan if (d or n_lag == 0) else math.sqrt(lag[b] / T(2 * n_lag))
+            out[6, b] = Z0 if d else ONE
+            out[7, b] = t_div[b] if d else nan
+
+    @numba.njit(parallel=True, error_model="numpy", fastmath=False)
+    def run(P, dt, n, g0, g1, l0, l1, F_bound, F_max, block):
+        """Metrics (N_METRICS, B): blocks in parallel, each over the whole horizon; g0, g1 and l0, l1
+        are the inclusive sample windows of grip and lag."""
+        B = P.shape[1]
+        n_blocks = (B + block - 1) // block
+        out = np.empty((N_METRICS, B), P.dtype)
+        for c in numba.prange(n_blocks):
+            lo = c * block
+            hi = min(B, lo + block)
+            block_out = np.empty((N_METRICS, hi - lo), P.dtype)
+            run_block(np.ascontiguousarray(P[:, lo:hi]), dt, n, g0, g1, l0, l1, F_bound, F_max, block_out)
+            out[:, lo:hi] = block_out
+        return out
+
+    def metrics(P, dt=1e-3, T_end=4.0, F_bound=1e6, F_max=15.0, block=BLOCK):
+        """The carry metrics (N_METRICS, B) of each column of P (`parameter_matrix`), in this dtype."""
+        from coopjax import objectives, scenarios
+
+        n = max(1, int(round(T_end / dt)))
+        ctx = objectives.Context(scenarios.get("carry"), dt, n)
+        (g0, g1), (l0, l1) = ctx.window("grip"), ctx.window("lag")
+        P = P if P.dtype == object else np.ascontiguousarray(P, T)  # object: the FLOP count (`count_flops`)
+        return run(P, T(dt), n, g0, g1, l0, l1, T(F_bound), T(F_max), int(block))
+
+    return metrics
+
+
+# --- the FLOP count of the source ---------------------------------------------------------------
+
+
+class _Counted:
+    """A float that counts the arithmetic done on it: + - * / negation, abs, comparisons (a max,
+    min or select is one), sqrt. Run through the kernel's own Python source (NUMBA_DISABLE_JIT)."""
+
+    ops = 0
+    __slots__ = ("v",)
+
+    def __init__(self, v):
+        self.v = float(v)
+
+    def __float__(self):
+        return self.v
+
+
+def _binary(name, fn):
+    def op(a, b):
+        _Counted.ops += 1
+        return _Counted(fn(float(a), float(b)))
+
+    def rop(a, b):
+        _Counted.ops += 1
+        return _Counted(fn(float(b), float(a)))
+
+    setattr(_Counted, f"__{name}__", op)
+    setattr(_Counted, f"__r{name}__", rop)
+
+
+def _compare(name, fn):
+    def op(a, b):
+        _Counted.ops += 1
+        return fn(float(a), float(b))
+
+    setattr(_Counted, f"__{name}__", op)
+
+
+for _name, _fn in (("add", lambda a, b: a + b), ("sub", lambda a, b: a - b), ("mul", lambda a, b: a * b),
+                   ("truediv", lambda a, b: a / b if b else math.copysign(math.inf, a) * math.copysign(1.0, b) if a else math.nan)):
+    _binary(_name, _fn)
+for _name, _fn in (("lt", lambda a, b: a < b), ("le", lambda a, b: a <= b), ("gt", lambda a, b: a > b),
+                   ("ge", lambda a, b: a >= b)):
+    _compare(_name, _fn)
+
+
+def _unary(a, fn):
+    _Counted.ops += 1
+    return _Counted(fn(float(a)))
+
+
+_Counted.__neg__ = lambda a: _unary(a, lambda x: -x)
+_Counted.__abs__ = lambda a: _unary(a, abs)
+
+
+class _CountingMath:
+    """`math` for the count: sqrt counts one; the rest (per step, not per sample) as math's."""
+
+    def __getattr__(self, name):
+        return getattr(_math, name)
+
+    @staticmethod
+    def sqrt(x):
+        return _unary(x, lambda v: _math.sqrt(v) if v >= 0 else _math.nan)
+
+
+def count_flops(step: str, T_end: float = 4.0, B: int = 2, seed: int = 0) -> float:
+    """FLOP per sample-step of the peer's source, metrics included, over a carry run of B random
+    samples (the sliding-mode step's count depends on how many of its pieces run). Runs the source
+    as Python, so it must be called in a process started with NUMBA_DISABLE_JIT=1."""
+    import coopjax as cj
+    from benchmarks.implementations import parameter_matrix
+
+    global math
+    rng = np.random.default_rng(seed)
+    P = parameter_matrix(cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B)))
+    counted = np.empty(P.shape, object)
+    for index, value in np.ndenumerate(P):
+        counted[index] = _Counted(value)
+    make_peer.cache_clear()
+    math = _CountingMath()
+    try:
+        _Counted.ops = 0
+        make_peer(step, "float64")(counted, T_end=T_end, block=B)
+    finally:
+        math = _math
+        make_peer.cache_clear()
+    return _Counted.ops / (B * round(T_end / 1e-3))
+
+
+if __name__ == "__main__":  # python -m benchmarks.strong_peer: the FLOP counts (JSON)
+    import json
+    import os
+    import sys
+
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.strong_peer",
+                                     description="FLOP per sample-step of the strong peer's source, as JSON")
+    parser.add_argument("--T", type=float, default=4.0, help="horizon of the counted carry run, s (default 4)")
+    args = parser.parse_args()
+    if os.environ.get("NUMBA_DISABLE_JIT") != "1":
+        print("run with NUMBA_DISABLE_JIT=1: the count runs the source as Python", file=sys.stderr)
+        sys.exit(2)
+    print(json.dumps({step: count_flops(step, T_end=args.T) for step in ("filippov", "rk4")}))
