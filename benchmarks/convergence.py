@@ -3,6 +3,7 @@ and (with --derivatives) its derivatives.
 
     python -m benchmarks.convergence [--quick] [--out benchmarks/convergence.json] [--plot docs/convergence.png]
     python -m benchmarks.convergence --derivatives [--n 64] [--out benchmarks/derivatives.json] [--plot docs/derivatives.png]
+    python -m benchmarks.convergence --readme-gradient
 
 The limit (docs/model.md, "Step size") is computed two independent ways that must agree within the
 tolerances before anything else counts: `filippov` at dt = 1e-5 and plain `rk4` at dt = 1e-6. Then
@@ -210,6 +211,38 @@ def derivative_study(n: int, ref_dt: float, dts=STUDY_DTS, log=print) -> dict:
     return result
 
 
+README_TERMS = ("slip", "crush", "lag", "loss")
+
+
+def readme_terms(k, dt):
+    """The README's loss at K_GP = k (M_b = 1 kg) and its three terms, (len(k), 4)."""
+    import jax.numpy as jnp
+
+    import coopjax as cj
+
+    m = cj.simulate(cj.make_params(K_GP=k), "carry", dt=dt, check_dt=False).metrics
+    w = cj.Weights()
+    return jnp.stack([w.slip * m.slip, w.crush * m.crush, w.lag * (m.rms_lag / w.lag_scale) ** 2, cj.loss(m, w)], -1)
+
+
+def readme_gradient(dts=(2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4), at=0.5, log=print) -> dict:
+    """d/d K_GP of the README's loss and of each term: AD at each step against central secants
+    (widths 1e-2 and 3e-3 in K_GP) of the same step; the finest step's secants are the limit's slope."""
+    import jax
+    import jax.numpy as jnp
+
+    rows = []
+    log(f"{'dt [s]':>8} " + " ".join(f"{t + ': AD':>12} {'secants':>17}" for t in README_TERMS))
+    for dt in dts:
+        _, ad = jax.jvp(lambda k: readme_terms(k, dt), (jnp.array([at]),), (jnp.array([1.0]),))
+        v = np.asarray(readme_terms(jnp.array([at + 1e-2, at - 1e-2, at + 3e-3, at - 3e-3]), dt))
+        secants = np.stack([(v[0] - v[1]) / 2e-2, (v[2] - v[3]) / 6e-3])
+        rows.append({"dt": dt, "ad": np.asarray(ad)[0].tolist(), "secants": secants.tolist()})
+        log(f"{dt:8g} " + " ".join(f"{float(ad[0, j]):+12.4f} {secants[0, j]:+8.4f}/{secants[1, j]:+8.4f}"
+                                  for j in range(len(README_TERMS))))
+    return {"terms": README_TERMS, "K_GP": at, "rows": rows}
+
+
 def plot_derivatives(result: dict, path: str) -> None:
     import matplotlib
 
@@ -254,6 +287,8 @@ def main(argv=None) -> int:
     parser.add_argument("--derivatives", action="store_true", help="the derivative study instead of the value study")
     parser.add_argument("--n", type=int, default=64, help="derivative study: (gain set, mass) samples (default 64)")
     parser.add_argument("--ref-dt", type=float, default=1e-4, help="derivative study: the converged model's step")
+    parser.add_argument("--readme-gradient", action="store_true",
+                        help="the README's gradient example and each of its terms, AD against secants, dt 2e-3 to 1e-4")
     args = parser.parse_args(argv)
 
     import jax
@@ -262,6 +297,9 @@ def main(argv=None) -> int:
 
     cj.use_all_cores()
     jax.config.update("jax_enable_x64", True)
+    if args.readme_gradient:
+        readme_gradient()
+        return 0
     if args.derivatives:
         out, plot_path = args.out or "benchmarks/derivatives.json", args.plot or "docs/derivatives.png"
         result = derivative_study(args.n, args.ref_dt)
