@@ -225,6 +225,14 @@ def readme_terms(k, dt):
     return jnp.stack([w.slip * m.slip, w.crush * m.crush, w.lag * (m.rms_lag / w.lag_scale) ** 2, cj.loss(m, w)], -1)
 
 
+def central_secants(f, x, dt, widths=WIDTHS) -> np.ndarray:
+    """Central secants of f(xs, dt) (xs a batch of points) at x, one row per width."""
+    import jax.numpy as jnp
+
+    v = np.asarray(f(jnp.array([x + s * w for w in widths for s in (1, -1)]), dt))
+    return np.stack([(v[2 * i] - v[2 * i + 1]) / (2 * w) for i, w in enumerate(widths)])
+
+
 def readme_gradient(dts=(2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4), at=0.5, log=print) -> dict:
     """d/d K_GP of the README's loss and of each term: AD at each step against central secants
     (widths 1e-2 and 3e-3 in K_GP) of the same step; the finest step's secants are the limit's slope."""
@@ -235,8 +243,7 @@ def readme_gradient(dts=(2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4), at=0.5, log=print) -> 
     log(f"{'dt [s]':>8} " + " ".join(f"{t + ': AD':>12} {'secants':>17}" for t in README_TERMS))
     for dt in dts:
         _, ad = jax.jvp(lambda k: readme_terms(k, dt), (jnp.array([at]),), (jnp.array([1.0]),))
-        v = np.asarray(readme_terms(jnp.array([at + 1e-2, at - 1e-2, at + 3e-3, at - 3e-3]), dt))
-        secants = np.stack([(v[0] - v[1]) / 2e-2, (v[2] - v[3]) / 6e-3])
+        secants = central_secants(readme_terms, at, dt)
         rows.append({"dt": dt, "ad": np.asarray(ad)[0].tolist(), "secants": secants.tolist()})
         log(f"{dt:8g} " + " ".join(f"{float(ad[0, j]):+12.4f} {secants[0, j]:+8.4f}/{secants[1, j]:+8.4f}"
                                   for j in range(len(README_TERMS))))
