@@ -72,6 +72,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     INF = T(np.inf)
     EPS = T(1e-9)  # as coopjax.integration.filippov.EPS
     SHORTEST = T(1e-2)  # as filippov.SHORTEST_EVENT
+    PIECES = 3  # as filippov.PIECES
     C2, C12, C30, C56, C90 = T(2.0), T(12.0), T(30.0), T(56.0), T(90.0)
     C6, C20, C42, C72, C110 = T(6.0), T(20.0), T(42.0), T(72.0), T(110.0)
     base = 2 * len(PER_ROBOT)
@@ -164,6 +165,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return (k1[0] + TWO * k2[0] + TWO * k3[0] + k4[0], k1[1] + TWO * k2[1] + TWO * k3[1] + k4[1], k1[2] + TWO * k2[2] + TWO * k3[2] + k4[2], k1[3] + TWO * k2[3] + TWO * k3[3] + k4[3], k1[4] + TWO * k2[4] + TWO * k3[4] + k4[4], k1[5] + TWO * k2[5] + TWO * k3[5] + k4[5], k1[6] + TWO * k2[6] + TWO * k3[6] + k4[6], k1[7] + TWO * k2[7] + TWO * k3[7] + k4[7], k1[8] + TWO * k2[8] + TWO * k3[8] + k4[8], k1[9] + TWO * k2[9] + TWO * k3[9] + k4[9], k1[10] + TWO * k2[10] + TWO * k3[10] + k4[10], k1[11] + TWO * k2[11] + TWO * k3[11] + k4[11], k1[12] + TWO * k2[12] + TWO * k3[12] + k4[12], k1[13] + TWO * k2[13] + TWO * k3[13] + k4[13], k1[14] + TWO * k2[14] + TWO * k3[14] + k4[14], k1[15] + TWO * k2[15] + TWO * k3[15] + k4[15], k1[16] + TWO * k2[16] + TWO * k3[16] + k4[16], k1[17] + TWO * k2[17] + TWO * k3[17] + k4[17], k1[18] + TWO * k2[18] + TWO * k3[18] + k4[18], k1[19] + TWO * k2[19] + TWO * k3[19] + k4[19])
 
     @inline
+    def weighted_dense(k1, k2, k3, k4, b1, b23, b4):
+        """RK4's continuous extension's weights for 20-tuples, written out (see axpy)."""
+        return (b1 * k1[0] + b23 * (k2[0] + k3[0]) + b4 * k4[0], b1 * k1[1] + b23 * (k2[1] + k3[1]) + b4 * k4[1], b1 * k1[2] + b23 * (k2[2] + k3[2]) + b4 * k4[2], b1 * k1[3] + b23 * (k2[3] + k3[3]) + b4 * k4[3], b1 * k1[4] + b23 * (k2[4] + k3[4]) + b4 * k4[4], b1 * k1[5] + b23 * (k2[5] + k3[5]) + b4 * k4[5], b1 * k1[6] + b23 * (k2[6] + k3[6]) + b4 * k4[6], b1 * k1[7] + b23 * (k2[7] + k3[7]) + b4 * k4[7], b1 * k1[8] + b23 * (k2[8] + k3[8]) + b4 * k4[8], b1 * k1[9] + b23 * (k2[9] + k3[9]) + b4 * k4[9], b1 * k1[10] + b23 * (k2[10] + k3[10]) + b4 * k4[10], b1 * k1[11] + b23 * (k2[11] + k3[11]) + b4 * k4[11], b1 * k1[12] + b23 * (k2[12] + k3[12]) + b4 * k4[12], b1 * k1[13] + b23 * (k2[13] + k3[13]) + b4 * k4[13], b1 * k1[14] + b23 * (k2[14] + k3[14]) + b4 * k4[14], b1 * k1[15] + b23 * (k2[15] + k3[15]) + b4 * k4[15], b1 * k1[16] + b23 * (k2[16] + k3[16]) + b4 * k4[16], b1 * k1[17] + b23 * (k2[17] + k3[17]) + b4 * k4[17], b1 * k1[18] + b23 * (k2[18] + k3[18]) + b4 * k4[18], b1 * k1[19] + b23 * (k2[19] + k3[19]) + b4 * k4[19])
+
+    @inline
     def load(y, b):
         return (y[0, b], y[1, b], y[2, b], y[3, b], y[4, b], y[5, b], y[6, b], y[7, b], y[8, b], y[9, b], y[10, b], y[11, b], y[12, b], y[13, b], y[14, b], y[15, b], y[16, b], y[17, b], y[18, b], y[19, b])
 
@@ -235,7 +241,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         tau = abs(sigma) / rate if (below or above) else INF
         tau = tau if tau > shortest else INF
         kelvin = sigma + F_lim
-        crossing = in_c and (F_lim > Z0) and (kelvin * sd0 < Z0)
+        crossing = in_c and (F_lim > Z0) and (sigma < Z0) and (kelvin * sd0 < Z0)
         tau0 = abs(kelvin) / abs(sd0) if crossing else INF
         tau0 = tau0 if tau0 > shortest else INF
         first = min(tau, tau0)
@@ -250,6 +256,31 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         den = delta_dot + math.sqrt(disc if real else ONE)
         hits = real and (den > Z0)
         return -TWO * delta / den if hits else INF
+
+    @inline
+    def crossing(sn, rate, se, h):
+        """filippov.crossing: where sigma, held through a piece of length h, reaches 0 in it."""
+        hs = h if h > Z0 else ONE
+        curvature = (se - sn - rate * hs) / (hs * hs)
+        disc = rate * rate - T(4.0) * curvature * sn
+        real = (sn < Z0) and (se > Z0) and (disc >= Z0)
+        den = rate + math.sqrt(disc if real else ONE)
+        ok = real and (den > Z0)
+        return min(max(-TWO * sn / den, Z0), h) if ok else h
+
+    @inline
+    def found(off, on_, sn, sd0, sd1, in_c, rate, kelvin_end, F_lim, h, fresh):
+        """filippov.trial_crossing: (found, time, hold) on a piece's own solution."""
+        se = kelvin_end - F_lim
+        up = off and se > Z0
+        down = on_ and se < Z0
+        kelvin = sn + F_lim
+        kink = in_c and (F_lim > Z0) and (kelvin * kelvin_end < Z0)
+        tau = crossing(sn, sd0, se, h) if up else (crossing(-sn, -sd1, -se, h) if down else INF)
+        sign = -ONE if kelvin > Z0 else ONE
+        tau0 = crossing(sign * kelvin, sign * rate, sign * kelvin_end, h) if kink else INF
+        hold = -1 if tau0 < tau else (0 if off else 1)
+        return fresh and (up or down or kink), min(tau, tau0), hold
 
     @inline
     def evaluate(P, b, y, t, cos, sin, on_L, on_R, off_L, off_R):
@@ -318,7 +349,14 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         k3 = stage(P, b, y, k2, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
         k4 = stage(P, b, y, k3, h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
         total = weighted(k, k2, k3, k4)
-        return total, h, impL, impR, holdL >= 0, holdR >= 0, FL, FR
+        # The switch held through the whole piece, below (off) or above (on) the surface.
+        offL = inL and sn_L < Z0 and (holdL == 0 or (holdL < 0 and tbL >= ONE))
+        onL_ = inL and sn_L > Z0 and (holdL == 1 or (holdL < 0 and taL >= ONE))
+        offR = inR and sn_R < Z0 and (holdR == 0 or (holdR < 0 and tbR >= ONE))
+        onR_ = inR and sn_R > Z0 and (holdR == 1 or (holdR < 0 and taR >= ONE))
+        heldL = (offL, onL_, sn_L, fL[2], fL[3], inL, fL[2] + lamL * (fL[3] - fL[2]))
+        heldR = (offR, onR_, sn_R, fR[2], fR[3], inR, fR[2] + lamR * (fR[3] - fR[2]))
+        return total, h, impL, impR, holdL >= 0, holdR >= 0, FL, FR, heldL, heldR, k, k2, k3, k4
 
     @inline
     def forces_at(P, b, y, on_L, on_R, off_L, off_R):
@@ -386,7 +424,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def sample_loop(P, S, t, cos_t, sin_t, in_grip, in_lag, dt):
         """The sample at t_k: forces and the lag (objectives), and the step's setup."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
         for b in range(P.shape[1]):
             yb = load(y, b)
             FL, FR = forces_at(P, b, yb, False, False, False, False)
@@ -410,24 +448,46 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def piece_loop(P, S, t, cos_t, sin_t, dt, last, step_in_grip, after, F_max):
         """One piece of the sliding-mode step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
         for b in range(P.shape[1]):
             yb = load(yn, b)
             tb, cb, sb = advance(t, cos_t, sin_t, off[b])
-            total, h, iL, iR, sfL, sfR, sL, sR = substep(P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], dt, last)
+            total, h, iL, iR, sfL, sfR, sL, sR, heldL, heldR, k1, k2, k3, k4 = substep(
+                P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], dt, last)
             new = axpy(yb, h / T(6.0), total)
-            eL, eR = forces_at(P, b, new, onL[b], onR[b], iL, iR)
+            # A crossing the piece held the switch through: the piece ends there, on RK4's continuous
+            # extension (filippov.step).
+            _, _, kL = geometry(P, 0, b, ONE, new[0], new[2], new[18], new[19])
+            _, _, kR = geometry(P, 1, b, -ONE, new[1], new[3], new[18], new[19])
+            fL, tL, hL = found(heldL[0], heldL[1], heldL[2], heldL[3], heldL[4], heldL[5], heldL[6], kL, P[iFlim, b], h,
+                               not last)
+            fR, tR, hR = found(heldR[0], heldR[1], heldR[2], heldR[3], heldR[4], heldR[5], heldR[6], kR, P[iFlim + 1, b], h,
+                               not last)
+            h_eff = h
+            offL, offR = iL, iR
+            if fL or fR:
+                tau = min(tL if fL else INF, tR if fR else INF)
+                th = tau / (h if h > Z0 else ONE)
+                b1 = th - T(1.5) * th * th + T(2.0 / 3.0) * th * th * th
+                b23 = th * th - T(2.0 / 3.0) * th * th * th
+                b4 = -HALF * th * th + T(2.0 / 3.0) * th * th * th
+                new = axpy(yb, h, weighted_dense(k1, k2, k3, k4, b1, b23, b4))
+                h_eff = tau
+                sfL = fL and tL <= tau and hL >= 0
+                sfR = fR and tR <= tau and hR >= 0
+                iL, iR = False, False
+            eL, eR = forces_at(P, b, new, onL[b], onR[b], offL, offR)
             store(yn, b, new)
-            rem[b] = rem[b] - h
-            off[b] = off[b] + h
+            rem[b] = rem[b] - h_eff
+            off[b] = off[b] + h_eff
             onL[b], onR[b] = iL, iR
             FeL[b], FeR[b] = eL, eR
-            hs[b], sLa[b], sRa[b], sfLa[b], sfRa[b] = h, sL, sR, sfL, sfR
+            hs[b], sLa[b], sRa[b], sfLa[b], sfRa[b], iLa[b], iRa[b] = h_eff, sL, sR, sfL, sfR, iL, iR
         # The piece's path, in a loop of its own (in the step's loop it kept it from vectorising): the
         # peak at its ends, the means' trapezoids, the least force at a located event (not after the
         # last piece).
         for b in range(P.shape[1]):
-            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], onL[b], onR[b], sfLa[b], sfRa[b]
+            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], iLa[b], iRa[b], sfLa[b], sfRa[b]
             keep = not diverged[b]
             s_, c_ = pieces_of(P, b, F_max, sL, sR, eL, eR, h / dt)
             peakL[b] = max(peakL[b], max(sL, eL)) if keep else peakL[b]
@@ -452,7 +512,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, after, F_max):
         """A plain RK4 step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
         dt2 = dt / TWO
         dt6 = dt / T(6.0)
         tm, cm, sm = advance(t, cos_t, sin_t, dt2)
@@ -481,7 +541,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         """integration/loop.py's rule: a non-finite state or an absurd force at the step's start
         freezes the sample at its last good state."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
         for b in range(P.shape[1]):
             bad = abs(F0L[b]) > F_bound or abs(F0R[b]) > F_bound
             for r in range(20):
@@ -501,7 +561,8 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
              np.empty(m, P.dtype), np.empty(m, P.dtype), np.full(m, INF, P.dtype), np.full(m, INF, P.dtype),
              np.full(m, -INF, P.dtype), np.full(m, -INF, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype),
              np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.full(m, INF, P.dtype),
-             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_))
+             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_),
+             np.zeros(m, np.bool_), np.zeros(m, np.bool_))
         for k in range(n + 1):
             t = T(k) * dt
             cos_t, sin_t = T(math.cos(TWO_PI * t)), T(math.sin(TWO_PI * t))
@@ -510,15 +571,15 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             if k == n:
                 break
             if filippov:
-                for j in range(3):
+                for j in range(PIECES):
                     if j > 0 and not busy(S[2]):
                         break
-                    piece_loop(P, S, t, cos_t, sin_t, dt, j == 2, step_in_grip, k >= g1, F_max)
+                    piece_loop(P, S, t, cos_t, sin_t, dt, j == PIECES - 1, step_in_grip, k >= g1, F_max)
             else:
                 rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, k >= g1, F_max)
             divergence_loop(P, S, t, dt, F_bound)
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
         grip_span = T(max(0, g1 - g0)) * dt
         after_span = T(max(0, n - g1)) * dt
         n_lag = max(0, l1 - l0 + 1)

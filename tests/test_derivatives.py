@@ -29,7 +29,7 @@ def test_the_readme_gradient_has_the_sign_and_size_of_the_limits_slope():
     _, ad = jax.jit(lambda k: jax.jvp(readme_loss, (k,), (1.0,)))(0.5)
     ad = float(ad)
     assert np.sign(ad) == np.sign(narrow) > 0
-    # Measured: +0.0295 against the limit's +0.0236 (+25 %): the loss's slope is crush (about -0.20)
+    # Measured: +0.0294 against the limit's +0.0236 (+25 %): the loss's slope is crush (about -0.20)
     # plus the lag term (about +0.22), so an error under 3 % of either is 25 % of the sum
     # (docs/model.md, "Derivatives").
     assert abs(ad / narrow - 1) < 0.3

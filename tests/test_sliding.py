@@ -160,3 +160,72 @@ def test_the_step_check_covers_the_sliding_mode_step():
     with pytest.raises(ValueError, match="too large for filippov .* stable only for dt <="):
         cj.simulate(p, "carry", dt=1e-3)
     assert bool(cj.simulate(p, "carry", dt=0.5 * limit, T=1.0).metrics.finite)
+
+
+def test_crossing_is_the_root_of_the_quadratic_through_the_piece():
+    from coopjax.integration.filippov import crossing
+
+    h, rate, curvature = 2e-3, 150.0, 4e5  # an accelerating approach: the first-order time is 0.33 / 150 > h
+    sigma_n = -0.33
+    root = (-rate + np.sqrt(rate**2 - 4 * curvature * sigma_n)) / (2 * curvature)
+    assert root < h < -sigma_n / rate
+    sigma_end = sigma_n + rate * h + curvature * h**2
+    assert float(crossing(jnp.array(sigma_n), jnp.array(rate), jnp.array(sigma_end), jnp.array(h))) == pytest.approx(root, rel=1e-12)
+    # no crossing in the piece: a finite placeholder (the caller masks it), and no NaN in its gradient
+    import jax
+
+    f = lambda s_end: crossing(jnp.array(sigma_n), jnp.array(rate), s_end, jnp.array(h))
+    assert float(f(jnp.array(-0.01))) == h
+    assert np.isfinite(float(jax.grad(f)(-0.01)))
+
+
+def test_a_crossing_the_first_order_prediction_puts_beyond_the_step_is_located_at_the_true_time():
+    """The force falls to F_lim faster than its rate at the step's start says (it accelerates), so a
+    first-order prediction puts the crossing beyond the step. The step finds it on its own RK4
+    solution, at the time an independent solve_ivp of the switch-on field finds."""
+    import jax
+    from scipy.integrate import solve_ivp
+
+    from coopjax import model
+    from coopjax.integration import filippov
+    from coopjax.scenarios import Clock, get
+    from tests import reference_model as ref
+
+    dt, k = 2e-3, 734  # Table 1 at 3 kg: robot L's force falls through F_lim at t = 1.4699 s
+    params = cj.make_params(M_b=np.array([3.0]))
+    y = np.array(cj.simulate(params, "carry", dt=dt, every=1, check_dt=False).trajectory.y[k, :, 0])
+    y[model.STATE_NAMES.index("x_r_R")] += 0.05  # robot R 4 cm clear of the body: one robot's event only
+    t0, ps, scenario = k * dt, model.robots(params), get("carry")
+    options = cj.Config("carry", dt=dt).options
+
+    # Reference: robot L on the switch-on field (its force above F_lim), robot R free, hard contact.
+    p = dict(ref.TABLE1, M_b=3.0)
+
+    def rhs(t, z):
+        x_o, v_o = z[18], z[19]
+        dz = np.zeros(20)
+        yL, yR = z[:9], z[9:18]
+        F = p["K_g"] * (yL[0] - x_o) + p["R_g"] * (yL[1] - v_o)
+        dz[:9] = ref.robot_rates(p, 1.0, yL, F, 1.0, max(F, p["F_lim"]), *ref.command("carry", 0, t))
+        dz[9:18] = ref.robot_rates(p, -1.0, yR, 0.0, 0.0, 0.0, *ref.command("carry", 1, t))
+        dz[18], dz[19] = v_o, F / p["M_b"]
+        return dz
+
+    def surface(t, z):
+        return p["K_g"] * (z[0] - z[18]) + p["R_g"] * (z[1] - z[19]) - p["F_lim"]
+
+    surface.terminal = True
+    z0 = np.concatenate([y[:18].reshape(9, 2).T.reshape(18), y[18:]])  # coopjax's layout -> robot-major
+    sol = solve_ivp(rhs, (t0, t0 + 2 * dt), z0, method="DOP853", rtol=1e-12, atol=1e-12, events=surface)
+    t_star = sol.t_events[0][0] - t0
+
+    fs, _ = filippov.fields(ps, filippov.Rows.of(jnp.asarray(y)[:, None]), Clock.at(t0), None, scenario, options)
+    first_order = float(fs[0].sigma[0] / -fs[0].sd1[0])
+    assert t_star < 0.99 * first_order  # the case: the start's rate puts the crossing later
+
+    h = 0.5 * (t_star + first_order)  # a step that holds the crossing, but not its first-order time
+    _, _, path = jax.jit(lambda y: filippov.step(ps, y, t0, h, scenario, options))(jnp.asarray(y)[:, None])
+    ends = np.cumsum(np.asarray(path.fraction[:, 0])) * h
+    located = np.asarray(path.surface[:, 0, 0])
+    assert located.sum() == 1, path
+    assert ends[located][0] == pytest.approx(t_star, abs=2e-3 * h)

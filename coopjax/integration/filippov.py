@@ -30,7 +30,13 @@ predicted at its start (or at the step's end). The events are where the field, o
   contact is held off up to the impact and on after it (no delta > 0 test);
 - the grip force reaching F_lim from below or from above (the switch), predicted to first order from
   sigma and its rate; the switch is held as it is up to the event;
-- the Kelvin-Voigt force passing 0 while the tip touches (the contact force stops at 0).
+- the Kelvin-Voigt force passing 0 while the tip touches, below F_lim (the contact force stops at 0).
+A first-order prediction is late for a force that accelerates towards F_lim (or 0), so each piece is
+also a trial: where a robot's switch was held through it (off below the surface, on above) and its
+own RK4 solution ends across the surface, or the Kelvin-Voigt force changed sign while touching, the
+piece ends at the crossing instead (`crossing`, from the start's value and rate and the trial's end
+value, so the stiff modes are in it), on RK4's continuous extension (`dense`). The rest of the step
+is the next piece. The last piece of a step is not cut.
 A substep of zero length is an exact no-op, so the step map is continuous. Unlocated, an event's
 effect on the step would depend on where in the step it fell: the value would still be right to
 O(dt), but its derivative with respect to the parameters would not converge.
@@ -253,7 +259,8 @@ def switching_time(f: Fields, shortest):
     tau = jnp.where((below | above), jnp.abs(f.sigma) / rate, jnp.inf)
     tau = jnp.where(tau > shortest, tau, jnp.inf)
     kelvin = f.sigma + f.F_lim
-    crossing = f.in_contact & (f.F_lim > 0.0) & (kelvin * f.sd0 < 0.0)
+    # Below F_lim only, where the w = 0 rate is the one acting: above it, the force reaches F_lim first.
+    crossing = f.in_contact & (f.F_lim > 0.0) & (f.sigma < 0.0) & (kelvin * f.sd0 < 0.0)
     tau0 = jnp.where(crossing, jnp.abs(kelvin) / jnp.where(crossing, jnp.abs(f.sd0), 1.0), jnp.inf)
     tau0 = jnp.where(tau0 > shortest, tau0, jnp.inf)
     first = jnp.minimum(tau, tau0)
@@ -281,12 +288,60 @@ def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last) -> Plan:
     return Plan(h, on, impact, hold, impact)
 
 
+def crossing(sigma_n, rate, sigma_end, h):
+    """Where sigma, held on one side of the surface through a piece of length h, reaches 0 in it: the
+    root of the quadratic with sigma's value and rate at the start and its value at the end (the
+    piece's own RK4 solution, so fast modes too small to see in the start's rates are in it).
+    For sigma_n < 0 < sigma_end, written without cancellation; the caller flips signs for the
+    crossing from above. Where there is no crossing the value is meaningless (the caller masks it);
+    divisions are guarded so that it puts no NaN in a gradient."""
+    hs = jnp.where(h > 0.0, h, 1.0)
+    curvature = (sigma_end - sigma_n - rate * hs) / hs**2
+    disc = rate**2 - 4.0 * curvature * sigma_n
+    real = (sigma_n < 0.0) & (sigma_end > 0.0) & (disc >= 0.0)
+    denominator = rate + jnp.sqrt(jnp.where(real, disc, 1.0))
+    ok = real & (denominator > 0.0)
+    # A crossing always has a root in (0, h); `ok` fails only to round-off, at its end.
+    return jnp.where(ok, jnp.clip(-2.0 * sigma_n / jnp.where(ok, denominator, 1.0), 0.0, h), h)
+
+
+class Held(NamedTuple):
+    """One robot at a piece's start, for `trial_crossing`: whether the switch is held off (below the
+    surface) or on (above it) through the whole piece, and the start's sigma and rates."""
+
+    off: jax.Array  # (B,) bool
+    on: jax.Array  # (B,) bool
+    sigma_n: jax.Array  # (B,) N
+    sd0: jax.Array  # (B,) N/s, the w = 0 field's
+    sd1: jax.Array  # (B,) N/s, the w = 1 field's
+    in_contact: jax.Array  # (B,) bool
+    rate: jax.Array  # (B,) N/s, the start's weighted field's
+
+
+def trial_crossing(g: Held, kelvin_end, F_lim, h, fresh):
+    """One robot's event found on a piece's own solution: (found, time, hold). The force crossed
+    F_lim while the switch was held (hold 0 from below, 1 from above), or the Kelvin-Voigt force
+    crossed 0 while touching (hold -1); the time is the first of them. Nothing is found where
+    `fresh` is False (the step's last piece)."""
+    sigma_end = kelvin_end - F_lim
+    up, down = g.off & (sigma_end > 0.0), g.on & (sigma_end < 0.0)
+    kelvin = g.sigma_n + F_lim
+    kink = g.in_contact & (F_lim > 0.0) & (kelvin * kelvin_end < 0.0)
+    tau = jnp.where(up, crossing(g.sigma_n, g.sd0, sigma_end, h),
+                    jnp.where(down, crossing(-g.sigma_n, -g.sd1, -sigma_end, h), jnp.inf))
+    sign = jnp.where(kelvin > 0.0, -1.0, 1.0)  # the Kelvin-Voigt force rising through 0 or falling
+    tau0 = jnp.where(kink, crossing(sign * kelvin, sign * g.rate, sign * kelvin_end, h), jnp.inf)
+    hold = jnp.where(tau0 < tau, -1, jnp.where(g.off, 0, 1))
+    return fresh & (up | down | kink), jnp.minimum(tau, tau0), hold
+
+
 def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, last=False):
     """RK4 over the next piece of a step: up to the first event predicted at its start, or the rest
     of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit.
 
     The first stage is the substep's start: its fields give the plan (length and overrides) and
-    the fractions theta for all four. Returns the new state, the plan and the signals at the start.
+    the fractions theta for all four. Returns the new state, the plan, the signals at the start,
+    each robot's `Held` and the four stages' rates (for `dense`).
     """
     # Every stage's theta uses sigma at the substep start (step 2 of the weight): the contact alone.
     no = jnp.zeros_like(on[0])
@@ -308,13 +363,29 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, 
         a, b = tableau
         fs, body = fields(ps, _axpy(rows, a * part.h, k_prev), clock.advance(a * part.h), contact, scenario, options)
         k = _rates(fs, body, sigma_n, part.h, contact, thetas)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), None
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), k
 
     # The other three stages as a `lax.scan` over the tableau: one stage body for XLA to compile
     # instead of three copies.
     tableau = (jnp.asarray(RK4_A[1:], remaining.dtype), jnp.asarray(RK4_B[1:], remaining.dtype))
-    (_, total), _ = jax.lax.scan(stage, (k, k), tableau)
-    return _axpy(rows, part.h / 6, total), part, signals
+    (_, total), ks = jax.lax.scan(stage, (k, k), tableau)
+    # Per robot, the switch held off (on) through the whole piece below (above) the surface: where
+    # `step` looks at the piece's end for a crossing its start did not predict.
+    held = []
+    for f, s_n, hold, (theta_below, theta_above), lam in zip(fs, sigma_n, part.hold, thetas, weights):
+        off = f.in_contact & (s_n < 0.0) & ((hold == 0) | ((hold < 0) & (theta_below >= 1.0)))
+        on_ = f.in_contact & (s_n > 0.0) & ((hold == 1) | ((hold < 0) & (theta_above >= 1.0)))
+        held.append(Held(off, on_, s_n, f.sd0, f.sd1, f.in_contact, f.sd0 + lam * (f.sd1 - f.sd0)))
+    return _axpy(rows, part.h / 6, total), part, signals, tuple(held), (k, ks)
+
+
+def dense(rows, h, ks, theta):
+    """RK4's continuous extension (third order) at theta of the piece: rows + h sum b_i(theta) k_i."""
+    k1, rest = ks
+    b1 = theta - 1.5 * theta**2 + 2.0 / 3.0 * theta**3
+    b23 = theta**2 - 2.0 / 3.0 * theta**3
+    b4 = -0.5 * theta**2 + 2.0 / 3.0 * theta**3
+    return jax.tree_util.tree_map(lambda y, a, k: y + h * (b1 * a + b23 * (k[0] + k[1]) + b4 * k[2]), rows, k1, rest)
 
 
 def step(params, y, t, dt, scenario, options):
@@ -333,12 +404,31 @@ def step(params, y, t, dt, scenario, options):
 
     def run(carry, j):
         rows, remaining, offset, on, F_end, signals = carry
-        new, part, start_signals = substep(ps, rows, clock.advance(offset), remaining, on, dt, scenario, options,
-                                           last=j == PIECES - 1)
-        end = jnp.stack([c[1] for c in _contacts(ps, new, options, Contact(part.on, part.off, part.hold))])
+        last = j == PIECES - 1
+        new, part, start_signals, held, ks = substep(ps, rows, clock.advance(offset), remaining, on, dt, scenario, options,
+                                                     last=last)
+        contact = Contact(part.on, part.off, part.hold)
+        touch = _contacts(ps, new, options, contact)
+        # The piece as a trial: cut at a crossing it held the switch through (module docstring).
+        found = tuple(trial_crossing(g, c[2], p.F_lim, part.h, ~last) for g, c, p in zip(held, touch, ps))
+        flag = found[0][0] | found[1][0]
+        tau = jnp.minimum(jnp.where(found[0][0], found[0][1], jnp.inf), jnp.where(found[1][0], found[1][1], jnp.inf))
+        h = jnp.where(flag, tau, part.h)
+        theta = h / jnp.where(part.h > 0.0, part.h, 1.0)
+        # A cond's outputs are buffers: their consumers read the decision instead of each fusing, and
+        # recomputing, the plan and the roots it stems from. The predicate holds for every state.
+        decided = (h, theta, flag, tau, found)
+        h, theta, flag, tau, found = jax.lax.cond(
+            (part.h >= 0.0).all(), lambda a: a[0], lambda a: a[1],
+            (decided, (part.h, jnp.ones_like(theta), jnp.zeros_like(flag), part.h, found)))
+        cut = dense(rows, part.h, ks, theta)
+        end = jnp.stack([c[1] for c in _contacts(ps, cut, options, contact)])
         signals = jax.tree_util.tree_map(lambda s, n: jnp.where(offset == 0.0, n, s), signals, start_signals)
-        carry = (new, remaining - part.h, offset + part.h, part.impact, end, signals)
-        return carry, (part.h, start_signals.F, end, jnp.stack([hold >= 0 for hold in part.hold]), jnp.stack(part.impact))
+        impact = tuple(i & ~flag for i in part.impact)
+        at_tau = [f & (t_ <= tau) for f, t_, _ in found]
+        surface = jnp.stack([jnp.where(flag, a & (hd >= 0), hold >= 0) for a, (_, _, hd), hold in zip(at_tau, found, part.hold)])
+        carry = (cut, remaining - h, offset + h, impact, end, signals)
+        return carry, (h, start_signals.F, end, surface, jnp.stack(impact))
 
     def piece(carry, j):
         # One predicate for the whole batch; under `vmap` the cond becomes a select and both run.
