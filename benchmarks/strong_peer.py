@@ -424,7 +424,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def sample_loop(P, S, t, cos_t, sin_t, in_grip, in_lag, dt):
         """The sample at t_k: forces and the lag (objectives), and the step's setup."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
+         hs, sLa, sRa, sfLa, sfRa) = S
         for b in range(P.shape[1]):
             yb = load(y, b)
             FL, FR = forces_at(P, b, yb, False, False, False, False)
@@ -448,7 +448,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def piece_loop(P, S, t, cos_t, sin_t, dt, last, step_in_grip, after, F_max):
         """One piece of the sliding-mode step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
+         hs, sLa, sRa, sfLa, sfRa) = S
         for b in range(P.shape[1]):
             yb = load(yn, b)
             tb, cb, sb = advance(t, cos_t, sin_t, off[b])
@@ -482,12 +482,12 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             off[b] = off[b] + h_eff
             onL[b], onR[b] = iL, iR
             FeL[b], FeR[b] = eL, eR
-            hs[b], sLa[b], sRa[b], sfLa[b], sfRa[b], iLa[b], iRa[b] = h_eff, sL, sR, sfL, sfR, iL, iR
+            hs[b], sLa[b], sRa[b], sfLa[b], sfRa[b] = h_eff, sL, sR, sfL, sfR
         # The piece's path, in a loop of its own (in the step's loop it kept it from vectorising): the
         # peak at its ends, the means' trapezoids, the least force at a located event (not after the
         # last piece).
         for b in range(P.shape[1]):
-            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], iLa[b], iRa[b], sfLa[b], sfRa[b]
+            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], onL[b], onR[b], sfLa[b], sfRa[b]
             keep = not diverged[b]
             s_, c_ = pieces_of(P, b, F_max, sL, sR, eL, eR, h / dt)
             peakL[b] = max(peakL[b], max(sL, eL)) if keep else peakL[b]
@@ -512,7 +512,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, after, F_max):
         """A plain RK4 step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
+         hs, sLa, sRa, sfLa, sfRa) = S
         dt2 = dt / TWO
         dt6 = dt / T(6.0)
         tm, cm, sm = advance(t, cos_t, sin_t, dt2)
@@ -541,7 +541,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         """integration/loop.py's rule: a non-finite state or an absurd force at the step's start
         freezes the sample at its last good state."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
+         hs, sLa, sRa, sfLa, sfRa) = S
         for b in range(P.shape[1]):
             bad = abs(F0L[b]) > F_bound or abs(F0R[b]) > F_bound
             for r in range(20):
@@ -561,8 +561,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
              np.empty(m, P.dtype), np.empty(m, P.dtype), np.full(m, INF, P.dtype), np.full(m, INF, P.dtype),
              np.full(m, -INF, P.dtype), np.full(m, -INF, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype),
              np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.full(m, INF, P.dtype),
-             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_),
-             np.zeros(m, np.bool_), np.zeros(m, np.bool_))
+             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_))
         for k in range(n + 1):
             t = T(k) * dt
             cos_t, sin_t = T(math.cos(TWO_PI * t)), T(math.sin(TWO_PI * t))
@@ -579,7 +578,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
                 rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, k >= g1, F_max)
             divergence_loop(P, S, t, dt, F_bound)
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, iLa, iRa) = S
+         hs, sLa, sRa, sfLa, sfRa) = S
         grip_span = T(max(0, g1 - g0)) * dt
         after_span = T(max(0, n - g1)) * dt
         n_lag = max(0, l1 - l0 + 1)
