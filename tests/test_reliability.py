@@ -29,8 +29,8 @@ COMMANDS = {
     "simulate": ["simulate", "--T", "0.5", "--plot", "fig.png"],
     "sweep": ["sweep", "--scenario", "paper", "--T", "0.3", "--n", "48", "--chunk", "4", "--vary", "M_b=uniform:1:2",
               "--devices", "1", "--quiet", "--out", "s.csv"],
-    "tune": ["tune", "--steps", "3", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
-             "--mode", "forward", "--quiet"],
+    "tune": ["tune", "--steps", "3", "--screen", "8", "--local", "2", "--starts", "2", "--train-masses", "2", "--held-out",
+             "2", "--params", "gains", "--quiet"],
     "analyze": ["analyze", "--alpha", "1"],
 }
 BAR = "it/s]"  # tqdm's progress lines

@@ -80,7 +80,7 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
     both = evaluate(Query(THETA, masses))
     for k in range(THETA.shape[0]):
         one = evaluate(Query(THETA[k:k + 1], masses))
-        for name in ("f", "c", "peak", "lag_mm", "min_grip"):
+        for name in ("f", "c", "peak", "lag_mm", "min_grip", "min_swi"):
             np.testing.assert_allclose(getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name)
 
 
@@ -127,3 +127,22 @@ def test_a_start_whose_step_blows_up_goes_back_halfway_and_the_others_go_on(monk
     assert not np.allclose(after[0], bad[0])  # start 0 took its gradient step
     state = result.state
     assert state.history["rejected"] == [0, 1, 0] and state.scale[1] == 0.5 and state.scale[0] == 1.0
+
+
+def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_path, monkeypatch):
+    from tuning.tuners import Evaluation
+    from tuning.tuners.cmaes import CMAES
+
+    monkeypatch.chdir(tmp_path)
+    tuner = CMAES()
+    state = tuner.init(pb.Problem(names=("K_GP", "K_GI"), n_masses=2), np.log([[0.5, 0.1], [0.2, 0.05]]), 0)
+    first = state.popsize
+    for _ in range(200):  # a quadratic with its minimum cut off by a constraint: cma soon meets tolfun
+        query = tuner.ask(state)
+        C = len(query.thetas)
+        c = np.maximum(0.0, query.thetas[:, :1] + 1.0) * np.ones((C, 2))
+        zeros = np.zeros((C, 2))
+        state = tuner.tell(state, query, Evaluation(f=(query.thetas**2).sum(1), c=c, peak=zeros, lag_mm=zeros,
+                                                    min_grip=zeros, finite=np.ones(C, bool), holds=(c == 0).all(1)))
+    assert state.restarts >= 1 and state.popsize == first * 2**state.restarts
+    assert list(tmp_path.iterdir()) == []  # cma's loggers wrote nothing, not even their folder

@@ -14,9 +14,13 @@ from tuning.tuners import TUNERS
 from test_tuning import BASE, PROBLEM, THETA, TUNER
 
 
-def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh_dir, capsys):
+METHOD_FLAGS = {"screen-SLP": ["--screen", "8", "--local", "2"], "gradient": ["--method", "gradient", "--mode", "forward"]}
+
+
+@pytest.mark.parametrize("method", list(METHOD_FLAGS))
+def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh_dir, capsys, method):
     code = cli.main(["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
-                     "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--mode", "forward",
+                     "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", *METHOD_FLAGS[method],
                      "--out", "tuned.json", "--quiet"])
     out = capsys.readouterr().out
     assert code == 0, out
@@ -57,8 +61,8 @@ def test_a_full_disk_at_the_end_keeps_the_checkpoint_and_resume_writes_the_resul
 
     from tuning import cli as tune_cli
 
-    args = ["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
-            "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--mode", "forward", "--quiet"]
+    args = ["tune", "--steps", "2", "--screen", "8", "--local", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2",
+            "--params", "gains", "--masses", "loguniform:0.8:4.5", "--margin", "0", "--quiet"]
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")

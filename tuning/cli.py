@@ -27,10 +27,12 @@ from coopjax.stability import check_step
 from tuning import driver, race
 from tuning.plots import plot_history, plot_pareto, plot_race, plot_traces
 from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, JUDGE_DT, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem,
-                            check_mass_range, expand_params, from_log, held_out_masses, judge, judge_config, select,
-                            starting_points, training_config, validation_masses)
+                            check_mass_range, expand_params, from_log, held_out_masses, judge, judge_config, log_bounds,
+                            select, starting_points, to_log, training_config, validation_masses)
 from tuning.tuners import TUNERS
 from tuning.tuners.adam import MODES, AdamAL
+from tuning.tuners.cmaes import CMAES
+from tuning.tuners.screen_slp import ScreenSLP
 
 NAME = "tune"
 DEFAULT_OUT = "tuned.json"
@@ -38,19 +40,26 @@ DEFAULT_OUT = "tuned.json"
 FIELD_FLAGS = {"names": "--params", "n_masses": "--train-masses", "learning_rate": "--lr", "cvar_alpha": "--cvar-alpha",
                "w_lag": "--w-lag", "al_every": "--al-every", "spread": "--spread", "masses": "--masses"}
 STARTS, SPREAD = 8, 2.5  # K starting points: the first is the user's (Table 1's), the others drawn near it
+METHODS = {ScreenSLP.name: ScreenSLP, AdamAL.name: AdamAL}  # the tuners a plain run can end on its own
+DEFAULT_METHOD = ScreenSLP.name
+# The gradient tuner's flags: None (unset) takes its defaults; another method refuses them.
+ADAM_FLAGS = {"mode": "--mode", "lr": "--lr", "rho": "--rho", "al_every": "--al-every"}
+SCREEN_FLAGS = {"screen": "--screen", "local": "--local"}
 
 
 def add_parser(sub):
-    d, p0 = AdamAL(), Problem()
+    d, sl, p0 = AdamAL(), ScreenSLP(), Problem()
     p = sub.add_parser(
         NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
-        description="Tune controller parameters on the carry scenario: K starting points at once, Adam on an "
-        "augmented Lagrangian (worst-case peak grip force + w_lag x worst-case RMS lag, subject to the grip "
-        "holding at every training mass), differentiated through the hard switch under the sliding-mode "
-        "integrator. The result is judged with the hard model at --judge-dt on held-out masses. Writes OUT "
-        "(json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
+        description="Tune controller parameters on the carry scenario, on the hard switch under the sliding-mode "
+        "integrator: minimise worst-case peak grip force + w_lag x worst-case RMS lag, with the grip holding at every "
+        "training mass. The default method (screen-SLP) screens Sobol points in one batch, then runs trust-region "
+        "linear programs on the worst case from the best of them, with exact Jacobians; --method gradient runs Adam "
+        "on an augmented Lagrangian. The result is judged with the hard model at --judge-dt on held-out masses. "
+        "Writes OUT (json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
         "_race.png; with --pareto: _pareto.png).",
     )
+    p.add_argument("--method", default=DEFAULT_METHOD, help=f"the tuner: {', '.join(METHODS)} (default {DEFAULT_METHOD})")
     p.add_argument("--params", default="all", help="comma-separated names, or gains (K_GP,K_GI,tau,G_e), per-robot "
                    "(the 4 gains of each robot: 8) or all (per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14) (default all)")
     p.add_argument("--masses", default="loguniform:0.5:5", help="body-mass range, loguniform:LOW:HIGH or uniform:LOW:HIGH, kg (default loguniform:0.5:5)")
@@ -64,11 +73,15 @@ def add_parser(sub):
     p.add_argument("--temperature", type=float, default=p0.temperature, help=f"softness of smoothmax, N (default {p0.temperature:g})")
     p.add_argument("--cvar-alpha", type=float, default=p0.cvar_alpha, help=f"cvar: the worst share of masses averaged (default {p0.cvar_alpha:g})")
     p.add_argument("--starts", type=int, default=STARTS, help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)")
-    p.add_argument("--steps", type=int, default=d.steps, help=f"optimiser steps (default {d.steps})")
-    p.add_argument("--mode", default=d.mode, help="forward, reverse, or auto: forward up to 4 parameters, reverse above (default auto)")
-    p.add_argument("--lr", type=float, default=d.learning_rate, help=f"peak learning rate, log units (default {d.learning_rate:g})")
-    p.add_argument("--rho", type=float, default=d.rho, help=f"initial penalty of the augmented Lagrangian, 1/N (default {d.rho:g})")
-    p.add_argument("--al-every", type=int, default=d.al_every, help=f"steps between multiplier updates (default {d.al_every})")
+    p.add_argument("--steps", type=int, default=None, help=f"screen-SLP: Jacobian steps of the local solves (default "
+                   f"{sl.steps}); gradient: optimiser steps (default {d.steps})")
+    p.add_argument("--screen", type=int, default=None, help=f"screen-SLP: Sobol points screened in the box x/÷ e^SPREAD "
+                   f"around the first start (default {sl.screen})")
+    p.add_argument("--local", type=int, default=None, help=f"screen-SLP: local solves run side by side (default {sl.local})")
+    p.add_argument("--mode", default=None, help="gradient: forward, reverse, or auto: forward up to 4 parameters, reverse above (default auto)")
+    p.add_argument("--lr", type=float, default=None, help=f"gradient: peak learning rate, log units (default {d.learning_rate:g})")
+    p.add_argument("--rho", type=float, default=None, help=f"gradient: initial penalty of the augmented Lagrangian, 1/N (default {d.rho:g})")
+    p.add_argument("--al-every", type=int, default=None, help=f"gradient: steps between multiplier updates (default {d.al_every})")
     p.add_argument("--spread", type=float, default=SPREAD, help=f"random starts lie within x/÷ e^SPREAD of the first (default {SPREAD:g})")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts and of the mass draws (default 0)")
     p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"step of the hard model for validation and judging, s (default {JUDGE_DT:g})")
@@ -78,6 +91,8 @@ def add_parser(sub):
     p.add_argument("--resume", action="store_true", help="continue an interrupted plain run from OUT.ckpt")
     p.add_argument("--compare", action="store_true", help="race every registered tuner over --seeds on one clock")
     p.add_argument("--seeds", default="0,1,2,3,4", help="seeds of --compare (default 0,1,2,3,4)")
+    p.add_argument("--race-budget", default="time", help="--compare: every tuner gets the --method's wall time (time, "
+                   "the default) or as many simulated trajectories (trajectories)")
     p.add_argument("--pareto", action="store_true", help="one run per lag weight: the worst-peak / worst-lag front of every tuner")
     p.add_argument("--lag-weights", default="0.5,1.5,4", help="lag weights of --pareto, N/mm (default 0.5,1.5,4)")
     p.add_argument("--devices", type=int, default=None, help="CPU devices (default: one per core)")
@@ -118,15 +133,25 @@ class Plan:
         masses = _parse_masses(args.masses)
         if args.held_out < 2:
             raise BadInput(f"--held-out is {args.held_out}: judge on at least 2 masses (the lightest and the heaviest)")
-        for flag, value in (("--starts", args.starts), ("--steps", args.steps), ("--al-every", args.al_every)):
-            if value < 1:
+        if args.method not in METHODS:
+            raise BadInput(f"--method must be one of {', '.join(METHODS)}, not {args.method!r}")
+        others = ADAM_FLAGS if args.method != AdamAL.name else SCREEN_FLAGS
+        for field, flag in others.items():
+            if getattr(args, field) is not None:
+                raise BadInput(f"{flag} sets the {'gradient' if others is ADAM_FLAGS else 'screen-SLP'} tuner; "
+                               f"this run's method is {args.method}")
+        for flag, value in (("--starts", args.starts), ("--steps", args.steps), ("--al-every", args.al_every),
+                            ("--local", args.local)):
+            if value is not None and value < 1:
                 raise BadInput(f"{flag} is {value}: it must be a whole number, at least 1")
+        if args.screen is not None and args.screen < 0:
+            raise BadInput(f"--screen is {args.screen}: it must be 0 or more")
         if args.seed < 0:
             raise BadInput(f"--seed is {args.seed}: it must be 0 or more")
-        if args.mode not in MODES:
+        if args.mode is not None and args.mode not in MODES:
             raise BadInput(f"--mode must be one of {', '.join(MODES)}, not {args.mode!r}")
         for flag, value in (("--lr", args.lr), ("--rho", args.rho)):
-            if not (math.isfinite(value) and value > 0):
+            if value is not None and not (math.isfinite(value) and value > 0):
                 raise BadInput(f"{flag} is {value:g}: it must be positive")
         if not (math.isfinite(args.spread) and args.spread >= 0):
             raise BadInput(f"--spread is {args.spread:g}: it must be 0 or more")
@@ -151,7 +176,7 @@ class Plan:
         self.problem = Problem(names=names, masses=masses, n_masses=args.train_masses, margin=args.margin,
                                jitter=args.jitter, config=training_config(args.switch, args.dt), w_lag=args.w_lag,
                                aggregate=args.aggregate, temperature=args.temperature, cvar_alpha=args.cvar_alpha).validate()
-        self.tuner = AdamAL(steps=args.steps, mode=args.mode, learning_rate=args.lr, al_every=args.al_every, rho=args.rho)
+        self.tuner = make_tuner(args)
         self.starts, self.spread, self.seed = args.starts, args.spread, args.seed
         self.held_out = held_out_masses(masses, args.held_out)
         self.judge_dt = args.judge_dt
@@ -163,6 +188,9 @@ class Plan:
             raise BadInput("--compare and --pareto are separate runs: choose one")
         if args.resume and (args.compare or args.pareto):
             raise BadInput("--resume continues a plain run; --compare and --pareto start afresh")
+        if args.race_budget not in race.BUDGETS:
+            raise BadInput(f"--race-budget must be one of {', '.join(race.BUDGETS)}, not {args.race_budget!r}")
+        self.race_budget = args.race_budget
         self.seeds = _parse_list(args.seeds, "--seeds", int) if args.compare else None
         if self.seeds is not None and min(self.seeds) < 0:
             raise BadInput(f"--seeds {args.seeds!r}: every seed must be 0 or more")
@@ -172,7 +200,7 @@ class Plan:
         if args.compare or args.pareto:
             for name, cls in TUNERS.items():  # every tuner of the study must be able to start
                 try:
-                    cls().init(self.problem, np.zeros((1, len(names))), 0)
+                    cls().init(self.problem, np.clip(to_log(self.first, names), *log_bounds(names))[None], 0)
                 except InputError as error:
                     raise BadInput(f"--{'compare' if args.compare else 'pareto'} runs every tuner, and {name} "
                                    f"cannot: {error}") from None
@@ -183,6 +211,14 @@ class Plan:
     def describe(self) -> dict:
         return {"problem": _plain(self.problem), "tuner": self.tuner.name, "tuner_settings": dataclasses.asdict(self.tuner),
                 "starts": self.starts, "spread": self.spread, "seed": self.seed, "judge_dt": self.judge_dt}
+
+
+def make_tuner(args):
+    """The --method's tuner with the flags that were given (the others at its defaults)."""
+    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}
+    if args.method == AdamAL.name:
+        return AdamAL(**given(steps=args.steps, mode=args.mode, learning_rate=args.lr, al_every=args.al_every, rho=args.rho))
+    return ScreenSLP(**given(steps=args.steps, screen=args.screen, local=args.local, spread=args.spread))
 
 
 def _plain(problem: Problem) -> dict:
@@ -232,19 +268,18 @@ def _resumable(files):
 def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
     start = time.perf_counter()
     problem, tuner = plan.problem, plan.tuner
-    mode = tuner.resolved_mode(len(problem.names))
-    print(f"tuning {', '.join(problem.names)}: {plan.starts} starts x {problem.n_masses} training masses per step, "
-          f"{problem.switch} model ({problem.config.method}, dt = {problem.dt:g} s), {mode} mode, {tuner.steps} steps")
+    print(f"tuning {', '.join(problem.names)} with {tuner.name}: {tuner.plan_text(len(problem.names), plan.starts)}; "
+          f"{problem.switch} model ({problem.config.method}, dt = {problem.dt:g} s)")
     interrupts.report_with(_resumable(files))
 
     def line(state, query, ev):
-        i = int(np.argmin(np.where(ev.holds, ev.f, np.inf))) if ev.holds.any() else None
-        best = f"best holding start {i}: f {ev.f[i]:.4g} N" if i is not None else "no start holds yet"
-        print(f"step {state.step:4d}/{tuner.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
-              f"mass, {state.history['rejected'][-1]} rejected; {best}")
+        text = tuner.progress_text(state, query, ev)
+        if text:
+            print(text)
 
     result = driver.run(tuner, problem, plan.base, plan.starts_for(plan.seed), plan.seed, checkpoint=files["checkpoint"],
-                        resume=resume, progress=quiet, total=tuner.steps, on_step=None if quiet else line)
+                        resume=resume, progress=quiet, total=tuner.expected_evaluations(plan.starts),
+                        on_step=None if quiet else line)
     tuned, selection = _select(plan, result)
     print(f"judging with the hard model (filippov), float64, dt = {plan.judge_dt:g} s, on {len(plan.held_out)} held-out "
           f"masses from {plan.held_out[0]:.3g} to {plan.held_out[-1]:.3g} kg ...")
@@ -256,7 +291,7 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
         "held_out_masses": [float(m) for m in plan.held_out],
         "judge": {"switch": "hard", "contact": "unilateral", "integrator": "filippov", "dtype": "float64",
                   "dt": plan.judge_dt, "hold_tolerance_N": HOLD_TOLERANCE},
-        "config": plan.describe(), "mode": mode, "history": history, "trajectories": result.trajectories,
+        "config": plan.describe(), "method": tuner.plan_text(len(problem.names), plan.starts), "history": history, "trajectories": result.trajectories,
         "tuning_seconds": result.elapsed, "compile_seconds": result.compile_s, "selection": selection,
     }
     with Outputs() as out:  # the result and its figures together, or none of them
@@ -312,8 +347,8 @@ def _plots(plan: Plan, tuned, result, files, out: Outputs):
     p = plan.problem
     what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
     plot_history(result.state.history, out.path(files["history"]),
-                 f"tuning {what} on the {p.switch} model (dt = {p.dt:g} s), {plan.starts} starts x {p.n_masses} masses, "
-                 f"{plan.tuner.resolved_mode(len(p.names))} mode")
+                 f"tuning {what} with {plan.tuner.name} on the {p.switch} model (dt = {p.dt:g} s), {p.n_masses} masses\n"
+                 f"{plan.tuner.plan_text(len(p.names), plan.starts)}")
     ends = np.array([plan.held_out[0], plan.held_out[-1]])
     runs = {}
     for label, values in (("start (Table 1)", plan.first), ("tuned", tuned)):
@@ -330,7 +365,7 @@ def _tuners(plan: Plan) -> dict:
 
 def _compare(plan: Plan, files, quiet: bool) -> int:
     result = race.run(_tuners(plan), plan.tuner.name, plan.problem, plan.base, plan.starts_for, plan.seeds,
-                      progress=quiet, judge_dt=plan.judge_dt)
+                      progress=quiet, judge_dt=plan.judge_dt, budget=plan.race_budget, target=CMAES.name)
     result["config"] = plan.describe()
     with Outputs() as out:
         write_json(out.path(files["out"]), result)

@@ -26,7 +26,7 @@ def _function(problem: Problem, derivative, mode, scalar):
     def outputs(thetas, masses, base):
         t = terms(thetas, base, problem, masses)
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip,
+        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
                     finite=m.finite.astype(thetas.dtype))
 
     if derivative is None:
@@ -40,7 +40,7 @@ def _function(problem: Problem, derivative, mode, scalar):
             basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
             out, tangents = jax.vmap(lambda v: jax.jvp(lambda th: outputs(th, masses, base), (thetas,), (v,)),
                                      out_axes=(None, 0))(basis)
-            out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "lag_mm")}
+            out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "lag_mm", "min_swi")}
             return out
 
         return jax.jit(jacobian)
@@ -51,8 +51,8 @@ def _function(problem: Problem, derivative, mode, scalar):
 
     def pack(t, L, grad):
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip, finite=m.finite,
-                    value=L, gradient=grad)
+        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
+                    finite=m.finite, value=L, gradient=grad)
 
     if mode == "forward":
         def forward(thetas, masses, base, weights):
@@ -118,5 +118,6 @@ class Evaluator:
             jac = {k: np.asarray(v) for k, v in out["jacobian"].items()}
         return Evaluation(f=f, c=c, peak=np.asarray(out["peak"]).reshape(C, M),
                           lag_mm=np.asarray(out["lag_mm"]).reshape(C, M), min_grip=min_grip, finite=finite, holds=holds,
+                          min_swi=np.asarray(out["min_swi"]).reshape(C, M),
                           value=None if "value" not in out else np.asarray(out["value"]),
                           gradient=None if "gradient" not in out else np.asarray(out["gradient"]), jacobian=jac)

@@ -17,30 +17,49 @@ def style(names) -> dict:
 
 
 def plot_history(history: dict, path: str, title: str) -> None:
-    """Each start's objective and grip shortfall against the step."""
+    """Each start's (or lane's) objective and grip constraint against the step.
+
+    A history with `phi` (screen-SLP) shows each lane's merit and its grip margin (the least Filippov
+    weight over the training masses); otherwise the objective f and the grip shortfall."""
     plt = _pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.8), constrained_layout=True)
     steps = np.asarray(history["step"]) + 1
-    f = np.asarray(history["f"], float)
-    short = np.asarray(history["shortfall"], float)
+    lanes = "phi" in history
+    f = np.asarray(history["phi" if lanes else "f"], float)
+    right = np.asarray(history["margin" if lanes else "shortfall"], float)
     holds = np.asarray(history["holds"], bool)
     for k in range(f.shape[1]):
-        line, = a.semilogy(steps, f[:, k], lw=1, label=f"start {k}" + (" (Table 1)" if k == 0 else ""))
+        label = f"lane {k}" if lanes else f"start {k}" + (" (Table 1)" if k == 0 else "")
+        line, = a.semilogy(steps, f[:, k], lw=1, label=label)
         a.plot(steps[holds[:, k]], f[holds[:, k], k], ".", color=line.get_color(), ms=4)
-        b.semilogy(steps, np.maximum(short[:, k], 1e-4), lw=1, color=line.get_color())
+        if lanes:
+            b.plot(steps, right[:, k], lw=1, color=line.get_color())
+        else:
+            b.semilogy(steps, np.maximum(right[:, k], 1e-4), lw=1, color=line.get_color())
     finite = f[np.isfinite(f)]
     if finite.size:  # a start that blows up for one step must not flatten everyone else's curve
         a.set_ylim(0.9 * finite.min(), 1.1 * min(finite.max(), 10 * np.percentile(finite, 90)))
     a.set_xlabel("step")
-    a.set_ylabel("objective f: smooth max of peak + w_lag x lag [N]")
-    a.set_title("objective per start (dots: holds at every training mass)", fontsize=10)
+    if lanes:
+        a.set_ylabel("merit: max peak + w_lag x max lag + penalties [N]")
+        a.set_title("merit per lane (dots: holds at every training mass;\na jump: the lane starts from a new screen point)",
+                    fontsize=10)
+        b.set_ylabel("grip margin: least Filippov weight over the masses")
+        b.axhline(history.get("margin_asked", [0.0])[0], color="0.3", ls="--", lw=1, label="the margin asked for")
+        b.set_ylim(-0.05, 1.05)
+        b.set_title("the grip constraint: 0 once the grip is lost", fontsize=10)
+        b.legend(fontsize=8)
+    else:
+        a.set_ylabel("objective f: smooth max of peak + w_lag x lag [N]")
+        a.set_title("objective per start (dots: holds at every training mass)", fontsize=10)
+        b.set_ylabel("worst RMS grip shortfall below F_lim [N] (floored at 1e-4)")
+        b.set_title("the constraint: 0 while the grip holds", fontsize=10)
+    a.set_xlabel("step")
     a.legend(fontsize=7, ncol=2)
     b.set_xlabel("step")
-    b.set_ylabel("worst RMS grip shortfall below F_lim [N] (floored at 1e-4)")
-    b.set_title("the constraint: 0 while the grip holds", fontsize=10)
     for ax in (a, b):
         ax.grid(alpha=0.3)
-    fig.suptitle(title)
+    fig.suptitle(title, fontsize=10)
     _save(fig, path)
 
 

@@ -99,7 +99,7 @@ def expand_params(text: str) -> tuple[str, ...]:
     return tuple(x.strip() for x in text.split(",") if x.strip())
 
 
-TRAINING_METRICS = ("min_grip", "peak_grip", "slip", "rms_lag")  # what the problem is built from
+TRAINING_METRICS = ("min_grip", "peak_grip", "slip", "rms_lag", "min_swi")  # what the problem is built from
 
 
 def training_config(switch: str = "hard", dt: float | None = None) -> Config:

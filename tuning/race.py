@@ -46,10 +46,15 @@ def time_to_reach(curve, target: float) -> float:
     return next((t for t, v in curve if v <= target * (1 + 1e-12)), math.inf)
 
 
+BUDGETS = ("time", "trajectories")
+
+
 def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=print, progress: bool = False,
-        judge_dt: float | None = None) -> dict:
+        judge_dt: float | None = None, budget: str = "time", target: str | None = None) -> dict:
     """Race `tuners` (name -> tuner) over `seeds`; `starts_for(seed)` gives the (K, n) starts.
-    The reference tuner runs to its own end; every other tuner gets its wall time."""
+    The reference tuner runs to its own end; every other tuner gets its wall time (`budget="time"`) or
+    as many simulated trajectories (`"trajectories"`). Times to reach are to `target`'s final
+    validated objective (default: the first other tuner)."""
     names = problem.names
     masses = validation_masses(problem)
     held_out = held_out_masses(problem.masses)
@@ -60,8 +65,13 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
         starts = starts_for(seed)
         results = {}
         for name in order:
-            budget = driver.Budget() if name == reference else driver.Budget(seconds=results[reference].elapsed)
-            results[name] = driver.run(tuners[name], problem, base, starts, seed, budget=budget,
+            if name == reference:
+                limit = driver.Budget()
+            elif budget == "time":
+                limit = driver.Budget(seconds=results[reference].elapsed)
+            else:
+                limit = driver.Budget(trajectories=results[reference].trajectories)
+            results[name] = driver.run(tuners[name], problem, base, starts, seed, budget=limit,
                                        progress=progress and name == reference)
             compile_s[name] = max(compile_s.get(name, 0.0), results[name].compile_s)
         budget_s = results[reference].elapsed
@@ -90,7 +100,7 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
         judged = {name: judge(p, held_out, base, problem.w_lag, **judging).row() if p else None
                   for name, p in chosen.items()}
         others = [n for n in order if n != reference]
-        target_name = others[0] if others else reference
+        target_name = target if target in results else (others[0] if others else reference)
         reach = {name: time_to_reach(c, final[target_name]) for name, c in curves.items()}
         row = {"seed": seed, "budget_s": budget_s, "curves": curves, "final": final, "target": target_name,
                "time_to_target": reach, "chosen": chosen, "held_out": judged,
@@ -104,7 +114,7 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
         log(f"seed {seed}: budget {budget_s:.1f} s; validated objective " + ", ".join(
             f"{name} {final[name]:.2f} N" for name in order) + f"; time to {target_name}'s final: " + ", ".join(
             f"{name} {_fmt_time(reach[name])}" for name in order))
-    return {"names": list(names), "seeds": list(seeds), "tuners": order, "reference": reference,
+    return {"names": list(names), "seeds": list(seeds), "tuners": order, "reference": reference, "budget": budget,
             "validation_masses": [float(m) for m in masses], "held_out_masses": [float(m) for m in held_out],
             "compile_s": compile_s, "per_seed": per_seed, "summary": summary(per_seed, order)}
 
@@ -119,6 +129,9 @@ def summary(per_seed: list[dict], order) -> dict:
                      "time_to_target_median": float(np.median(reach)), "time_to_target_worst": float(np.max(reach)),
                      "holds_on_seeds": int(np.isfinite(finals).sum())}
     out["budget_s_median"] = float(np.median([r["budget_s"] for r in per_seed]))
+    if per_seed:  # seeds on which the reference ends strictly better than the target
+        ref, tgt = order[0], per_seed[0]["target"]
+        out["reference_better_on_seeds"] = int(sum(r["final"][ref] < r["final"][tgt] for r in per_seed))
     return out
 
 
@@ -129,8 +142,9 @@ def _fmt_time(t: float) -> str:
 def print_summary(result: dict) -> None:
     s, order = result["summary"], result["tuners"]
     target = result["per_seed"][0]["target"] if result["per_seed"] else order[0]
+    kind = "wall time" if result.get("budget", "time") == "time" else "simulated trajectories (its wall time"
     print(f"\nrace over seeds {result['seeds']} ({len(result['names'])} parameters; each tuner gets {result['reference']}'s "
-          f"wall time, median {s['budget_s_median']:.1f} s; compile apart: "
+          f"{kind}, median {s['budget_s_median']:.1f} s{')' if kind != 'wall time' else ''}; compile apart: "
           + ", ".join(f"{k} {v:.1f} s" for k, v in result["compile_s"].items()) + ")")
     print(f"{'tuner':<15} {'final objective [N], median':>28} {'worst':>8} {'holds':>6} "
           f"{'time to ' + target + ' final, median':>32} {'worst':>8}")
@@ -142,4 +156,5 @@ def print_summary(result: dict) -> None:
     if target != result["reference"]:
         verdict = "less" if ref < tgt else "NOT less"
         print(f"on the median over seeds {result['reference']} reaches {target}'s final validated objective in {verdict} "
-              f"wall time than {target} ({_fmt_time(ref)} against {_fmt_time(tgt)})")
+              f"wall time than {target} ({_fmt_time(ref)} against {_fmt_time(tgt)}); it ends better than {target} on "
+              f"{s.get('reference_better_on_seeds', 0)} of {len(result['seeds'])} seeds")

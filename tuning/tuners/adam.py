@@ -123,6 +123,18 @@ class AdamAL(Tuner):
         return state._replace(step=k + 1, theta=theta, good=good, scale=scale, retries=retries, opt_state=opt_state,
                               mult=mult, best_theta=best_theta, best_f=best_f, history=h)
 
+    def plan_text(self, n_params, starts):
+        return f"{starts} starts, {self.resolved_mode(n_params)} mode, {self.steps} steps"
+
+    def progress_text(self, state, query, ev):
+        i = int(np.argmin(np.where(ev.holds, ev.f, np.inf))) if ev.holds.any() else None
+        best = f"best holding start {i}: f {ev.f[i]:.4g} N" if i is not None else "no start holds yet"
+        return (f"step {state.step:4d}/{self.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
+                f"mass, {state.history['rejected'][-1]} rejected; {best}")
+
+    def expected_evaluations(self, starts):
+        return self.steps
+
     def candidates(self, state):
         """Each start's best holding iterate (where it has one) and its final iterate."""
         out = []

@@ -31,7 +31,8 @@ class Evaluation(NamedTuple):
     holds: np.ndarray  # (C,) finite, and the grip holds at every mass
     value: np.ndarray | None = None  # (C,) the tuner's scalar, with "gradient"
     gradient: np.ndarray | None = None  # (C, n), with "gradient"
-    jacobian: dict | None = None  # {"peak", "lag_mm", "c", "f"}: (C, M, n) ((C, n) for f), with "jacobian"
+    jacobian: dict | None = None  # {"peak", "lag_mm", "c", "min_swi", "f"}: (C, M, n) ((C, n) for f), with "jacobian"
+    min_swi: np.ndarray | None = None  # (C, M) the grip margin: least Filippov weight over the grip window
 
 
 class Tuner:
@@ -53,6 +54,19 @@ class Tuner:
     def candidates(self, state) -> list[np.ndarray]:
         """Log-parameter vectors worth validating, in the tuner's order of preference."""
         raise NotImplementedError
+
+    # What `coopjax tune` prints; a tuner may say more.
+    def plan_text(self, n_params: int, starts: int) -> str:
+        """One line on how the run will go."""
+        return f"{starts} starts"
+
+    def progress_text(self, state, query: Query, evaluation: Evaluation) -> str | None:
+        """A line after an evaluation (None: nothing to say)."""
+        return None
+
+    def expected_evaluations(self, starts: int) -> int | None:
+        """Evaluations a run takes, for the progress bar (None: not known ahead)."""
+        return None
 
     # With derivative="gradient": the scalar per candidate whose gradient is asked for, a pure JAX
     # function of (problem, f (C,), c (C, M), weights) that is static (hashable) for compilation.

@@ -1,13 +1,18 @@
 """CMA-ES (the `cma` package) in log space, with the grip constraint handled by cma's own
-augmented Lagrangian (`cma.ConstrainedFitnessAL`). It writes no log files.
+augmented Lagrangian (`cma.ConstrainedFitnessAL`), and IPOP restarts. It writes no log files.
 
 Each generation of `popsize` candidates is one batch, on the gradient tuner's mass draws: generation
-g sees the masses of step g. A diverged run is infeasible and bad, not missing.
+g sees the masses of step g. A diverged run is infeasible and bad, not missing. The population is
+cma's recommended 4 + 3 ln n by default; when a run meets one of cma's own stopping criteria it
+restarts with twice the population (IPOP-CMA-ES, Auger and Hansen 2005), from the next of the given
+starts, which every tuner shares.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import tempfile
 import warnings
 
 import numpy as np
@@ -27,6 +32,9 @@ class State:
     seed: int
     problem: object
     best: list  # (holds, -f, theta) of the best candidate told so far
+    starts: np.ndarray  # (K, n) the given starts: restart k begins at starts[k % K]
+    restarts: int = 0
+    popsize: int = 0  # of the current run
 
 
 @register
@@ -35,28 +43,46 @@ class CMAES(Tuner):
     name = "CMA-ES"
     description = "CMA-ES (the cma package) with cma's augmented Lagrangian for the grip constraint"
 
-    popsize: int | None = 8  # None: cma's recommended 4 + 3 ln n
+    popsize: int | None = None  # None: cma's recommended 4 + 3 ln n
     sigma0: float = 1.0  # initial step, log units
     generations: int | None = None  # None: until the budget is spent
+    ipop: bool = True  # restart with twice the population when a run stops
 
-    def init(self, problem, starts, seed):
-        try:
-            import cma
-        except ImportError:
-            raise InputError("the CMA-ES tuner needs the cma package: pip install 'coopjax[baselines]'") from None
+    def _start(self, problem, x0, seed, popsize):
+        import cma
+
         lo, hi = log_bounds(problem.names)
         options = {"bounds": [list(lo), list(hi)], "seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
-        if self.popsize is not None:
-            options["popsize"] = self.popsize
+        if popsize:
+            options["popsize"] = popsize
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            es = cma.CMAEvolutionStrategy(np.asarray(starts[0]), self.sigma0, options)
+            es = cma.CMAEvolutionStrategy(np.clip(np.asarray(x0), lo, hi), self.sigma0, options)
         cache = {}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
-            fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0)
+            fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0,
+                                           dimension=len(x0))
+        # cma builds its augmented Lagrangian's loggers (and their folder, outcmaes/) where the process
+        # stands before it applies logging=0: build it in a scratch folder, then again without loggers.
+        with tempfile.TemporaryDirectory() as scratch:
+            here = os.getcwd()
+            os.chdir(scratch)
+            try:
+                fun.al._init_()
+            finally:
+                os.chdir(here)
         fun.cache = cache
-        return State(es, fun, 0, seed, problem, [])
+        return es, fun
+
+    def init(self, problem, starts, seed):
+        try:
+            import cma  # noqa: F401
+        except ImportError:
+            raise InputError("the CMA-ES tuner needs the cma package: pip install 'coopjax[baselines]'") from None
+        starts = np.asarray(starts)
+        es, fun = self._start(problem, starts[0], seed, self.popsize)
+        return State(es, fun, 0, seed, problem, [], starts, 0, es.popsize)
 
     def ask(self, state):
         if self.generations is not None and state.generation >= self.generations:
@@ -79,6 +105,14 @@ class CMAES(Tuner):
             if ok and (not state.best or (bool(h), -float(f)) > tuple(state.best[:2])):
                 state.best = [bool(h), -float(f), np.asarray(x)]
         state.generation += 1
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            stopped = self.ipop and state.es.stop()
+        if stopped:
+            state.restarts += 1
+            x0 = state.starts[state.restarts % len(state.starts)]
+            state.popsize *= 2
+            state.es, state.fun = self._start(state.problem, x0, state.seed + 1000 * state.restarts, state.popsize)
         return state
 
     def candidates(self, state):

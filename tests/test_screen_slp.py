@@ -1,0 +1,175 @@
+"""The screen-and-SLP tuner: the local solver on minimax problems with known answers (through the
+ask/tell interface, with an analytic evaluator: no simulation), the grip margin it keeps, the
+screen's choice, resume by replay; and its exact Jacobians against central differences on the hard
+model, where the grip constraint is active and where it is not."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from tuning import driver
+from tuning.problem import Problem
+from tuning.tuners import Evaluation, Query
+from tuning.tuners.screen_slp import ScreenSLP, diverse_best
+
+# Charalambous and Conn's CB2: max of three smooth functions, minimum 1.9522245 at (1.1390, 0.8996),
+# where all three are active (a kink that a smooth maximum's gradient zigzags across).
+CB2_MIN, CB2_AT = 1.9522245, np.array([1.1390383, 0.8995599])
+
+
+def cb2(x):
+    x1, x2 = x
+    values = np.array([x1**2 + x2**4, (2 - x1) ** 2 + (2 - x2) ** 2, 2 * math.exp(x2 - x1)])
+    jac = np.array([[2 * x1, 4 * x2**3], [-2 * (2 - x1), -2 * (2 - x2)],
+                    [-2 * math.exp(x2 - x1), 2 * math.exp(x2 - x1)]])
+    return values, jac
+
+
+class Analytic:
+    """An evaluator of the driver's shape: peak_m = CB2's f_m (three 'masses'), no lag, no shortfall,
+    and a grip margin min_swi_m = x1 - floor at every mass (1 when there is no floor)."""
+
+    compile_s = 0.0
+
+    def __init__(self, floor=None, broken=()):
+        self.floor, self.broken, self.calls = floor, set(broken), 0
+
+    def warm_up(self, query):
+        pass
+
+    def __call__(self, query):
+        C, n = query.thetas.shape
+        M = 3
+        peak, J_peak = np.zeros((C, M)), np.zeros((C, M, n))
+        swi, J_swi = np.ones((C, M)), np.zeros((C, M, n))
+        for i, x in enumerate(query.thetas):
+            peak[i], J_peak[i] = cb2(x)
+            if self.floor is not None:
+                swi[i], J_swi[i, :, 0] = x[0] - self.floor, 1.0
+        finite = np.ones(C, bool)
+        if self.calls in self.broken:  # a sample that diverged: NaN outputs, not finite
+            peak[0], finite[0] = np.nan, False
+        self.calls += 1
+        zeros = np.zeros((C, M))
+        jac = None
+        if query.derivative == "jacobian":
+            jac = {"peak": J_peak, "lag_mm": np.zeros_like(J_peak), "c": np.zeros_like(J_peak), "min_swi": J_swi,
+                   "f": J_peak[:, 0]}
+        return Evaluation(f=peak.max(1), c=zeros, peak=peak, lag_mm=zeros, min_grip=np.full((C, M), 10.0), finite=finite,
+                          holds=finite & (swi > 0).all(1), jacobian=jac, min_swi=swi)
+
+
+PROBLEM = Problem(names=("K_GP", "K_GI"), n_masses=3, w_lag=1.0)
+
+
+def solve(tuner, starts, evaluator, **kwargs):
+    return driver.run(tuner, PROBLEM, None, np.asarray(starts, float), seed=0, evaluator=evaluator, **kwargs)
+
+
+def test_the_local_solve_finds_the_minimax_optimum_where_three_pieces_are_active():
+    result = solve(ScreenSLP(screen=0, local=2, steps=40), [[2.0, 2.0], [0.0, -1.0]], Analytic())
+    best = result.tuner.candidates(result.state)[0]
+    assert np.allclose(best, CB2_AT, atol=1e-4)
+    assert cb2(best)[0].max() == pytest.approx(CB2_MIN, abs=1e-6)
+
+
+def test_the_grip_margin_is_kept_exactly_as_an_independent_solver_keeps_it():
+    """With min_swi = x1 - 1.4 and a margin of 0.1, x1 >= 1.5: the answer is scipy SLSQP's on the epigraph."""
+    tuner = ScreenSLP(screen=0, local=2, steps=40, swi_margin=0.1)
+    reference = minimize(lambda z: z[2], x0=[2.0, 2.0, 10.0], method="SLSQP",
+                         constraints=[{"type": "ineq", "fun": lambda z: z[2] - cb2(z[:2])[0]},
+                                      {"type": "ineq", "fun": lambda z: z[0] - 1.5}], options={"ftol": 1e-12})
+    result = solve(tuner, [[2.0, 2.0], [0.5, 0.0]], Analytic(floor=1.4))
+    best = result.tuner.candidates(result.state)[0]
+    assert best[0] >= 1.5 - 1e-9
+    assert np.allclose(best, reference.x[:2], atol=1e-4)
+    assert cb2(best)[0].max() == pytest.approx(reference.fun, abs=1e-6)
+
+
+def test_the_screen_hands_the_best_distinct_points_to_the_local_solve():
+    thetas = np.array([[0.0, 0.0], [0.1, 0.0], [3.0, 3.0], [1.0, -1.0]])
+    phi = np.array([2.0, 1.0, np.inf, 5.0])
+    assert diverse_best(thetas, phi, 3, 0.5) == [1, 3]  # 0 is within 0.5 of the better 1; 2 did not run
+    tuner = ScreenSLP(screen=16, local=3, radii=4, steps=1)
+    state = tuner.init(PROBLEM, np.array([[2.0, 2.0]]), 0)
+    asked, told = [], []
+    while state.phase == "screen":  # in batches of the trials' shape (3 lanes x 4 radii)
+        query = tuner.ask(state)
+        assert query.derivative is None and len(query.thetas) == 12
+        asked.append(query.thetas)
+        told.append(Analytic()(query))
+        state = tuner.tell(state, query, told[-1])
+    thetas = np.concatenate(asked)
+    assert len(thetas) == 24 and np.array_equal(thetas[0], [2.0, 2.0])  # the start, then 23 Sobol points
+    phi = np.concatenate([ev.peak.max(1) for ev in told])
+    assert np.array_equal(state.theta[0], thetas[np.argmin(phi)])  # the best point starts the first solve
+    assert tuner.ask(state).derivative == "jacobian"
+
+
+def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():
+    tuner = ScreenSLP(screen=0, local=2, steps=40)
+    starts = [[2.0, 2.0], [0.0, -1.0]]
+    clean = solve(tuner, starts, Analytic())
+    broken = solve(tuner, starts, Analytic(broken={2}))  # the first start's widest first trial diverges
+    assert clean.state.history["radius"][1][0] >= tuner.radius  # unbroken, that trial is taken
+    assert broken.state.history["radius"][1][0] <= tuner.radius / 2  # broken, a shorter one (or none) is
+    best = broken.tuner.candidates(broken.state)[0]
+    assert np.allclose(best, CB2_AT, atol=1e-4)
+
+
+def test_resume_replays_to_the_same_iterates(tmp_path):
+    starts = [[2.0, 2.0], [0.0, -1.0]]
+    tuner = ScreenSLP(screen=8, local=2, steps=8)
+    whole = solve(tuner, starts, Analytic())
+    path = str(tmp_path / "run.ckpt")
+    solve(tuner, starts, Analytic(), checkpoint=path, budget=driver.Budget(trajectories=2 * 8 * 3 + 2 * 3 + 8 * 3 + 2 * 3))
+    resumed = solve(tuner, starts, Analytic(), checkpoint=path, resume=True)
+    assert resumed.evaluations == whole.evaluations
+    assert np.array_equal(resumed.state.theta, whole.state.theta)
+    assert resumed.state.history == whole.state.history
+
+
+def test_finite_difference_jacobians_solve_the_same_problem():
+    """The ablation's central differences: on a smooth problem the same optimum as exact Jacobians."""
+    result = solve(ScreenSLP(screen=0, local=2, steps=40, jacobian="fd", fd_step=1e-5), [[2.0, 2.0], [0.0, -1.0]],
+                   Analytic())
+    best = result.tuner.candidates(result.state)[0]
+    assert np.allclose(best, CB2_AT, atol=1e-4)
+
+
+def test_without_the_local_solve_the_screen_goes_on_with_new_points():
+    from tuning.tuners.ablation import ScreenOnly
+
+    tuner = ScreenOnly(screen=8, local=2, radii=4)
+    result = solve(tuner, [[2.0, 2.0]], Analytic(), budget=driver.Budget(trajectories=6 * 8 * 3))
+    assert result.evaluations == 6  # 2 batches of the screen, then 4 more
+    thetas = np.asarray(result.record.thetas)
+    assert len(np.unique(thetas, axis=0)) == len(thetas) == 48  # every point is new
+    best = result.tuner.candidates(result.state)[0]
+    assert cb2(best)[0].max() == pytest.approx(min(cb2(t)[0].max() for t in thetas))
+
+
+def test_the_jacobians_are_the_central_differences_of_the_hard_model():
+    """Every per-mass output the local solve linearises, at a mass where the grip holds (the margin
+    min_swi is the active measure) and one where it is lost (the shortfall c is): forward mode
+    against central differences of the same discretised model (training step, float64)."""
+    from test_tuning import BASE, PROBLEM, THETA
+
+    from tuning.evaluate import Evaluator
+
+    masses = np.asarray([1.0, 5.0])
+    evaluate = Evaluator(PROBLEM, BASE)
+    ev = evaluate(Query(THETA, masses, "jacobian"))
+    assert (ev.min_swi[:, 0] > 0.05).all() and (ev.c[:, 1] > 0.1).any(), "one mass holds, the other loses the grip"
+    h, n = 1e-6, THETA.shape[1]
+    shifted = np.concatenate([THETA + h * e for e in np.eye(n)] + [THETA - h * e for e in np.eye(n)])
+    values = evaluate(Query(shifted, masses))
+    K = len(THETA)
+    for name, key in (("peak", "peak"), ("lag_mm", "lag_mm"), ("c", "c"), ("min_swi", "min_swi")):
+        v = getattr(values, key).reshape(2, n, K, len(masses))
+        fd = np.moveaxis((v[0] - v[1]) / (2 * h), 0, -1)  # (K, M, n)
+        scale = np.abs(fd).max() + 1e-12
+        np.testing.assert_allclose(ev.jacobian[name], fd, rtol=1e-4, atol=1e-5 * scale, err_msg=name)

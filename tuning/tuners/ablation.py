@@ -1,0 +1,32 @@
+"""The ablation of screen-SLP, in the race beside it: what the exact Jacobian contributes, and what
+the local solve does.
+
+- `screen-SLP/FD`: the same tuner with central differences (2n + 1 runs per lane and step) in place of
+  forward-mode Jacobians: what a design optimiser without derivatives (Simulink Design Optimization's
+  fmincon) pays and gets.
+- `screen only`: the same screen, continued batch after batch with further Sobol points until the
+  clock ends, and no local solve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from tuning.tuners.base import register
+from tuning.tuners.screen_slp import ScreenSLP
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class ScreenSLPFiniteDifferences(ScreenSLP):
+    name = "screen-SLP/FD"
+    description = "the ablation: screen-SLP with central differences instead of exact Jacobians"
+    jacobian: str = "fd"
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class ScreenOnly(ScreenSLP):
+    name = "screen only"
+    description = "the ablation: screen-SLP's screen alone, continued with more Sobol points until the clock ends"
+    steps: int = 0

@@ -1,0 +1,383 @@
+"""A batched screen, then trust-region linear programs on the worst case's epigraph with exact
+Jacobians: the simulator's two strengths, one after the other.
+
+1. **Screen.** `screen` scrambled-Sobol points in the box around the first start (x/÷ e^spread),
+   with every given start, run at every training mass in batches of the trials' shape (one compiled
+   program for both). The `local` best are kept, no two closer than `diverse` (log units, max norm),
+   so the local solves do not all refine one basin; the next ones wait in a queue.
+2. **Local solve.** The worst case over masses has a kink wherever two masses are worst at once, and
+   a gradient step on a smooth maximum zigzags across it. Its epigraph form has none:
+
+       minimise   t + w_lag s                               over (theta, t, s)
+       subject to peak_m <= t,  lag_m <= s,                 at every training mass m
+                  c_m <= 0,  min_swi_m >= swi_margin        (the grip holds, with authority to spare)
+
+   Each iteration linearises every per-mass output with its exact Jacobian (forward mode, all
+   tangents in one pass) and solves the linear program for the step within a trust region
+   (|d|_inf <= r, and the box). The grip constraints are elastic, priced at `penalty` N per N of
+   shortfall and `swi_penalty` N per unit of margin, so the program is feasible from any start.
+   Why the margin: while the grip holds, the shortfall c is 0 and flat, so a linear model of c alone
+   sees no constraint and steps to where the grip is lost. The least Filippov weight `min_swi` is the
+   distance to that loss, with a derivative.
+3. **Trials.** A Jacobian costs many primal runs, so each iteration tries the programs' steps at
+   r, r/2, ... (`radii` of them) in one batch of values, and keeps the one with the lowest merit
+
+       phi = max_m peak_m + w_lag max_m lag_m + penalty sum_m c_m + swi_penalty sum_m max(0, swi_margin - min_swi_m)
+
+   among those whose fall is at least `accept` of the predicted one. The radius doubles after a full
+   step that matched its prediction, and drops below the shortest one tried when none is kept (Sl1LP:
+   Fletcher and Sainz de la Maza, 1989, with several radii per model).
+
+The masses are fixed for the whole run (the training range's grid, ends included: the heaviest mass
+is where the grip is hardest), so every comparison is of the same function. The local solves run
+side by side in one batch (lanes), each with its own radius; a lane whose program promises nothing
+has converged and takes the screen's next point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.optimize import linprog
+from scipy.stats import qmc
+
+from coopjax.errors import InputError
+from tuning.problem import grid, log_bounds
+from tuning.tuners.base import Evaluation, Query, Tuner, register
+
+SHORTEST = 1e-4  # log units: a trust region this small has converged
+
+
+@dataclasses.dataclass
+class State:
+    phase: str  # "screen", then "jacobian" and "trials" in turn, then "done"
+    step: int  # Jacobian evaluations told so far (local iterations)
+    masses: np.ndarray  # (M,) the training masses, fixed for the run
+    starts: np.ndarray  # (K0, n) the given starts (screened with the Sobol points)
+    theta: np.ndarray | None = None  # (K, n) each lane's iterate
+    radius: np.ndarray | None = None  # (K,) its trust region, log units; 0: converged or dead
+    current: dict | None = None  # outputs and Jacobians at theta, and phi (K,)
+    trials: np.ndarray | None = None  # (K, R, n) the steps to try next, one per radius
+    predicted: np.ndarray | None = None  # (K, R) the linear programs' predicted falls of phi there
+    pending: np.ndarray | None = None  # (K,) the lane's iterate is new: its Jacobian comes next
+    queue: list = dataclasses.field(default_factory=list)  # the screen's next best points, for refills
+    best: list = dataclasses.field(default_factory=list)  # per local solve: (holds, phi, theta) of its best point
+    lane: list = dataclasses.field(default_factory=list)  # which solve (index into best) each lane runs
+    history: dict = dataclasses.field(default_factory=dict)
+    screened: dict | None = None  # the screen's summary
+    screen_all: np.ndarray | None = None  # (S, n) the screen's points
+    screen_log: list = dataclasses.field(default_factory=list)  # its batches so far: (thetas, Evaluation)
+    seed: int = 0
+    problem: object = None
+
+
+def merit(ev_like: dict, w_lag, penalty, swi_penalty, swi_margin):
+    """phi per candidate from (C, M) outputs peak, lag, c, swi."""
+    gap = np.maximum(0.0, swi_margin - ev_like["swi"])
+    return (ev_like["peak"].max(1) + w_lag * ev_like["lag"].max(1) + penalty * ev_like["c"].sum(1)
+            + swi_penalty * gap.sum(1))
+
+
+def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_margin):
+    """The trust-region linear program at one point: (d, predicted fall of phi).
+
+    Variables (d, t, s, e, g): minimise t + w_lag s + penalty sum e + swi_penalty sum g subject to
+    peak + J_peak d <= t, lag + J_lag d <= s, c + J_c d <= e, swi_margin - swi - J_swi d <= g,
+    e, g >= 0, |d|_inf <= radius within the box.
+    """
+    M, n = out["J_peak"].shape
+    cost = np.concatenate([np.zeros(n), [1.0, w_lag], np.full(M, penalty), np.full(M, swi_penalty)])
+    zeros, ones, eye, none = np.zeros((M, 1)), np.ones((M, 1)), np.eye(M), np.zeros((M, M))
+    A = np.block([[out["J_peak"], -ones, zeros, none, none],
+                  [out["J_lag"], zeros, -ones, none, none],
+                  [out["J_c"], zeros, zeros, -eye, none],
+                  [-out["J_swi"], zeros, zeros, none, -eye]])
+    b = np.concatenate([-out["peak"], -out["lag"], -out["c"], out["swi"] - swi_margin])
+    box = [(max(-radius, l - x), min(radius, h - x)) for x, l, h in zip(theta, lo, hi)]
+    bounds = box + [(None, None), (None, None)] + [(0.0, None)] * (2 * M)
+    solution = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs")
+    if solution.status != 0:
+        return np.zeros(n), 0.0
+    here = merit({k: out[k][None] for k in ("peak", "lag", "c", "swi")}, w_lag, penalty, swi_penalty, swi_margin)[0]
+    return solution.x[:n], float(here - solution.fun)
+
+
+def diverse_best(thetas, phi, count, distance):
+    """Indices of up to `count` finite-phi points, best first, no two within `distance` (max norm)."""
+    chosen = []
+    for i in np.argsort(phi, kind="stable"):
+        if not np.isfinite(phi[i]):
+            break
+        if all(np.abs(thetas[i] - thetas[j]).max() >= distance for j in chosen):
+            chosen.append(int(i))
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+def _outputs(ev) -> dict:
+    out = {"peak": ev.peak, "lag": ev.lag_mm, "c": ev.c, "swi": ev.min_swi}
+    if ev.jacobian is not None:
+        J = ev.jacobian
+        out |= {"J_peak": J["peak"], "J_lag": J["lag_mm"], "J_c": J["c"], "J_swi": J["min_swi"]}
+    return out
+
+
+def _central_differences(query, ev, K, h):
+    """The query and evaluation that exact Jacobians would have given, from runs at each of K lanes
+    and at +h and -h along each parameter (`ScreenSLP.ask` with jacobian="fd")."""
+    n = query.thetas.shape[1]
+    rows = lambda x: x.reshape((K, 2 * n + 1) + x.shape[1:])
+    centre = lambda x: rows(x)[:, 0]
+    slope = lambda x: np.moveaxis((rows(x)[:, 1:n + 1] - rows(x)[:, n + 1:]) / (2 * h), 1, -1)
+    finite = rows(ev.finite).all(1)
+    jac = {"peak": slope(ev.peak), "lag_mm": slope(ev.lag_mm), "c": slope(ev.c), "min_swi": slope(ev.min_swi),
+           "f": slope(ev.f)}
+    lanes = Evaluation(f=centre(ev.f), c=centre(ev.c), peak=centre(ev.peak), lag_mm=centre(ev.lag_mm),
+                       min_grip=centre(ev.min_grip), finite=finite, holds=centre(ev.holds) & finite, jacobian=jac,
+                       min_swi=centre(ev.min_swi))
+    return Query(centre(query.thetas), query.masses, "jacobian"), lanes
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class ScreenSLP(Tuner):
+    """A Sobol screen in one batch, then Sl1LP on the epigraph of the worst case from its best points."""
+
+    name = "screen-SLP"
+    description = ("a batched Sobol screen, then trust-region linear programs on the worst case's epigraph with exact "
+                   "Jacobians (forward mode)")
+    uses_gradient = True
+
+    screen: int = 512  # Sobol points of the screen (a power of 2), besides the given starts
+    spread: float = 2.5  # the screen's box: x/÷ e^spread around the first start, within the search box
+    local: int = 8  # local solves side by side (lanes of one batch)
+    refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
+    diverse: float = 0.5  # least distance between two local starts, log units (max norm)
+    steps: int = 12  # local iterations: Jacobian evaluations of every lane (0: no local solve; the screen
+    # goes on, batch after batch, until the budget ends)
+    radius: float = 0.25  # initial trust region, log units
+    radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
+    max_radius: float = 1.0
+    penalty: float = 100.0  # N of merit per N of grip shortfall at one mass
+    swi_margin: float = 0.1  # the least Filippov weight asked for at every training mass
+    swi_penalty: float = 20.0  # N of merit per unit of margin missing at one mass
+    accept: float = 0.1  # least share of the predicted fall a step must achieve
+    # "exact": forward-mode Jacobians; "fd": central differences of width fd_step (log units), 2n + 1
+    # runs per lane, as a design optimiser without derivatives would take them (the ablation).
+    jacobian: str = "exact"
+    fd_step: float = 1e-3
+
+    def _phi(self, out, problem):
+        return merit(out, problem.w_lag, self.penalty, self.swi_penalty, self.swi_margin)
+
+    def init(self, problem, starts, seed):
+        if self.jacobian not in ("exact", "fd"):
+            raise InputError(f"jacobian is {self.jacobian!r}: exact or fd", "jacobian")
+        lo, hi = log_bounds(problem.names)
+        starts = np.clip(np.asarray(starts, np.float64), lo, hi)
+        masses = grid(problem.training_range, problem.n_masses)
+        history = {k: [] for k in ("step", "f", "holds", "shortfall", "phi", "radius", "margin", "accepted")}
+        history["margin_asked"] = [self.swi_margin]
+        state = State("screen", 0, masses, starts, history=history, seed=seed, problem=problem)
+        state.screen_all = self.screen_points(state)
+        return state
+
+    def screen_points(self, state) -> np.ndarray:
+        """The given starts, then Sobol points in the screen's box: at least `screen` of them, as many
+        as fill the last batch."""
+        lo, hi = log_bounds(state.problem.names)
+        first = state.starts[0]
+        a, b = np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
+        batch = self.local * self.radii
+        count = -(-(len(state.starts) + self.screen) // batch) * batch - len(state.starts)
+        sobol = qmc.Sobol(d=len(first), scramble=True, seed=state.seed)
+        u = sobol.random_base2(max(0, int(np.ceil(np.log2(max(count, 1))))))[:count]
+        return np.concatenate([state.starts, a + (b - a) * u])
+
+    def ask(self, state):
+        if state.phase == "screen":
+            # In batches of the trials' shape: one compiled program serves both.
+            done = sum(len(q) for q, _ in state.screen_log)
+            return Query(state.screen_all[done:done + self.local * self.radii], state.masses)
+        if state.phase == "screen only":  # no local solve (the ablation): more Sobol points until the budget ends
+            return Query(self._more_points(state), state.masses)
+        if state.phase == "jacobian" and state.step < self.steps:
+            if self.jacobian == "fd":  # each lane, then it moved by +h and -h along each parameter: values only
+                K, n = state.theta.shape
+                shifts = np.concatenate([np.zeros((1, n)), self.fd_step * np.eye(n), -self.fd_step * np.eye(n)])
+                return Query((state.theta[:, None] + shifts[None]).reshape(-1, n), state.masses)
+            # Copies: the log keeps the query, and the lanes' arrays change in place.
+            return Query(state.theta.copy(), state.masses, "jacobian")
+        if state.phase == "trials":
+            return Query(state.trials.reshape(-1, state.trials.shape[-1]).copy(), state.masses)
+        return None
+
+    def _more_points(self, state):
+        lo, hi = log_bounds(state.problem.names)
+        first = state.starts[0]
+        a, b = np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
+        batch = self.local * self.radii
+        sobol = qmc.Sobol(d=len(first), scramble=True, seed=state.seed)
+        sobol.fast_forward(len(state.screen_all) - len(state.starts) + state.step * batch)
+        return a + (b - a) * sobol.random(batch)
+
+    def _tell_more(self, state, query, ev):
+        _, ok, phi = self._ok_phi(state, ev)
+        for i in range(len(phi)):
+            self._keep_best(state, 0, ev.holds[i], phi[i], query.thetas[i])
+        state.step += 1
+        return state
+
+    def tell(self, state, query, ev):
+        if state.phase == "screen only":
+            return self._tell_more(state, query, ev)
+        return {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
+            state, query, ev)
+
+    def _ok_phi(self, state, ev):
+        out = _outputs(ev)
+        ok = ev.finite & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
+        return out, ok, np.where(ok, self._phi(out, state.problem), np.inf)
+
+    def _tell_screen(self, state, query, ev):
+        state.screen_log.append((query.thetas, ev))
+        if sum(len(q) for q, _ in state.screen_log) < len(state.screen_all):
+            return state
+        thetas = np.concatenate([q for q, _ in state.screen_log])
+        ev = Evaluation(*(None if x[0] is None else np.concatenate(x) for x in zip(*(e for _, e in state.screen_log))))
+        query = Query(thetas, state.masses)
+        state.screen_log = []
+        _, ok, phi = self._ok_phi(state, ev)
+        ranked = diverse_best(query.thetas, phi, self.local * (1 + self.refills), self.diverse)
+        if not ranked:  # nothing ran: carry on from the given starts (their failure is reported)
+            ranked = list(range(min(self.local, len(state.starts))))
+        chosen, rest = ranked[:self.local], ranked[self.local:]
+        K = len(chosen)
+        state.theta = query.thetas[chosen].copy()
+        state.radius = np.full(K, self.radius)
+        state.pending = np.ones(K, bool)
+        state.queue = [query.thetas[i].copy() for i in rest]
+        state.best = [(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen]
+        state.lane = list(range(K))
+        state.screened = {"points": len(query.thetas), "finite": int(ok.sum()), "holding": int((ok & ev.holds).sum()),
+                          "best_phi": float(np.min(phi)) if ok.any() else None}
+        state.phase = "jacobian" if self.steps > 0 else "screen only"
+        return state
+
+    def _keep_best(self, state, k, holds, phi, theta):
+        best = state.best[state.lane[k]]
+        if np.isfinite(phi) and (bool(holds), -phi) > (best[0], -best[1]):
+            state.best[state.lane[k]] = (bool(holds), float(phi), theta.copy())
+
+    def _tell_jacobian(self, state, query, ev):
+        if self.jacobian == "fd":
+            query, ev = _central_differences(query, ev, len(state.theta), self.fd_step)
+        out, ok, phi = self._ok_phi(state, ev)
+        out["phi"] = phi
+        state.current = out
+        state.radius = np.where(ok, state.radius, 0.0)  # a lane whose iterate does not run is dead
+        state.pending = np.zeros(len(ok), bool)
+        for k in range(len(ok)):
+            self._keep_best(state, k, ev.holds[k], phi[k], query.thetas[k])
+        for key, value in (("step", state.step), ("f", [float(x) for x in np.where(ok, ev.f, np.inf)]),
+                           ("holds", [bool(x) for x in ev.holds]), ("shortfall", [float(x) for x in ev.c.max(1)]),
+                           ("phi", phi.tolist()), ("radius", state.radius.tolist()),
+                           ("margin", [float(x) for x in np.where(ok, ev.min_swi.min(1), np.nan)])):
+            state.history[key].append(value)
+        state.step += 1
+        return self._plan(state)
+
+    def _plan(self, state):
+        """The next trials of every live lane (one per radius), and refills for converged lanes."""
+        lo, hi = log_bounds(state.problem.names)
+        K, n = state.theta.shape
+        state.trials = np.repeat(state.theta[:, None], self.radii, 1)
+        state.predicted = np.zeros((K, self.radii))
+        cur = state.current
+        for k in np.flatnonzero((state.radius > 0) & ~state.pending):
+            here = {key: value[k] for key, value in cur.items()}
+            for j in range(self.radii):
+                d, fall = program(state.theta[k], here, state.radius[k] / 2**j, lo, hi, state.problem.w_lag,
+                                  self.penalty, self.swi_penalty, self.swi_margin)
+                if fall <= 1e-9 * max(1.0, abs(cur["phi"][k])):  # nothing left to gain in the model
+                    break
+                state.trials[k, j], state.predicted[k, j] = np.clip(state.theta[k] + d, lo, hi), fall
+            if state.predicted[k, 0] <= 0:  # converged
+                state.radius[k] = 0.0
+        for k in np.flatnonzero(state.radius <= 0):  # a converged (or dead) lane takes the screen's next point
+            if not state.queue:
+                break
+            state.theta[k] = state.queue.pop(0)
+            state.trials[k] = state.theta[k]
+            state.radius[k], state.pending[k] = self.radius, True
+            state.lane[k] = len(state.best)
+            state.best.append((False, np.inf, state.theta[k].copy()))
+        if (state.predicted > 0).any():
+            state.phase = "trials"
+        elif state.pending.any():
+            state.phase = "jacobian"
+        else:
+            state.phase = "done"
+        return state
+
+    def _tell_trials(self, state, query, ev):
+        _, ok, phi = self._ok_phi(state, ev)
+        K, R, n = state.trials.shape
+        ok, phi, holds = ok.reshape(K, R), phi.reshape(K, R), ev.holds.reshape(K, R)
+        accepted = np.zeros(K, bool)
+        for k in range(K):
+            if state.predicted[k, 0] <= 0:
+                continue
+            for j in range(R):
+                if state.predicted[k, j] > 0:
+                    self._keep_best(state, k, holds[k, j], phi[k, j], state.trials[k, j])
+            ratio = (state.current["phi"][k] - phi[k]) / np.where(state.predicted[k] > 0, state.predicted[k], 1.0)
+            good = ok[k] & (state.predicted[k] > 0) & (ratio >= self.accept)
+            radii = state.radius[k] / 2.0 ** np.arange(R)
+            if good.any():
+                j = int(np.argmin(np.where(good, phi[k], np.inf)))
+                length = np.abs(state.trials[k, j] - state.theta[k]).max()
+                grow = j == 0 and ratio[j] > 0.75 and length >= 0.99 * radii[0]
+                state.theta[k] = state.trials[k, j]
+                state.radius[k] = min(2 * radii[j], self.max_radius) if grow else radii[j]
+                accepted[k] = True
+            else:  # below the smallest radius tried
+                state.radius[k] = radii[-1] / 2 if radii[-1] / 2 >= SHORTEST else 0.0
+        state.history["accepted"].append(accepted.tolist())
+        state.pending = accepted
+        if accepted.any():
+            state.phase = "jacobian"
+            return state
+        return self._plan(state)
+
+    def plan_text(self, n_params, starts):
+        return (f"a screen of {starts} starts + {self.screen} Sobol points, then {self.local} local solves side by side, "
+                f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)")
+
+    def progress_text(self, state, query, ev):
+        if state.phase == "jacobian" and query.derivative is None and state.screened and state.step == 0:
+            s = state.screened
+            best = f"best merit {s['best_phi']:.4g} N" if s["best_phi"] is not None else "none ran"
+            return (f"screen: {s['points']} points, {s['finite']} ran, {s['holding']} hold at every training mass; {best}; "
+                    f"{len(state.theta)} local solves from the best distinct ones")
+        if query.derivative != "jacobian":
+            return None
+        phi = state.current["phi"]
+        live = int((state.radius > 0).sum())
+        best = min((b for b in state.best if b[0]), key=lambda b: b[1], default=None)
+        text = f"best holding solve: merit {best[1]:.4g} N" if best else "no solve holds yet"
+        return (f"step {state.step:3d}/{self.steps}  merit of the lanes {np.nanmin(phi):.4g} to {np.nanmax(phi[np.isfinite(phi)]) if np.isfinite(phi).any() else float('nan'):.4g} N, "
+                f"{live} moving; {text}")
+
+    def expected_evaluations(self, starts):
+        batch = self.local * self.radii
+        return -(-(starts + self.screen) // batch) + 2 * self.steps
+
+    def candidates(self, state):
+        """Each local solve's best evaluated point (holding first, then by merit); the given starts
+        if nothing ran."""
+        order = sorted(range(len(state.best)), key=lambda k: (not state.best[k][0], state.best[k][1]))
+        out = [state.best[k][2] for k in order if np.isfinite(state.best[k][1])]
+        return out or list(state.starts)
