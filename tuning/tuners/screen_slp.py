@@ -353,7 +353,9 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
-        return (f"a screen of {starts} starts + {self.screen} Sobol points, then {self.local} local solves side by side, "
+        batch = self.local * self.radii
+        sobol = -(-(starts + self.screen) // batch) * batch - starts  # as many as fill the last batch
+        return (f"a screen of {starts} starts + {sobol} Sobol points, then {self.local} local solves side by side, "
                 f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)")
 
     def progress_text(self, state, query, ev):
