@@ -80,7 +80,8 @@ def merit(ev_like: dict, w_lag, penalty, swi_penalty, swi_margin):
 
 
 def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_margin):
-    """The trust-region linear program at one point: (d, predicted fall of phi).
+    """The trust-region linear program at one point (`out`: its outputs, Jacobians and merit phi):
+    (d, predicted fall of phi).
 
     Variables (d, t, s, e, g): minimise t + w_lag s + penalty sum e + swi_penalty sum g subject to
     peak + J_peak d <= t, lag + J_lag d <= s, c + J_c d <= e, swi_margin - swi - J_swi d <= g,
@@ -99,8 +100,7 @@ def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_m
     solution = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs")
     if solution.status != 0:
         return np.zeros(n), 0.0
-    here = merit({k: out[k][None] for k in ("peak", "lag", "c", "swi")}, w_lag, penalty, swi_penalty, swi_margin)[0]
-    return solution.x[:n], float(here - solution.fun)
+    return solution.x[:n], float(out["phi"] - solution.fun)
 
 
 def diverse_best(thetas, phi, count, distance):
@@ -184,15 +184,22 @@ class ScreenSLP(Tuner):
         state.screen_all = self.screen_points(state)
         return state
 
-    def screen_points(self, state) -> np.ndarray:
-        """The given starts, then Sobol points in the screen's box: at least `screen` of them, as many
-        as fill the last batch."""
+    def _sobol_count(self, starts: int) -> int:
+        """Sobol points in the screen: at least `screen`, as many as fill the last batch."""
+        batch = self.local * self.radii
+        return -(-(starts + self.screen) // batch) * batch - starts
+
+    def _box(self, state):
+        """The screen's box (log units): x/÷ e^spread around the first start, within the search box."""
         lo, hi = log_bounds(state.problem.names)
         first = state.starts[0]
-        a, b = np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
-        batch = self.local * self.radii
-        count = -(-(len(state.starts) + self.screen) // batch) * batch - len(state.starts)
-        sobol = qmc.Sobol(d=len(first), scramble=True, seed=state.seed)
+        return np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
+
+    def screen_points(self, state) -> np.ndarray:
+        """The given starts, then the Sobol points in the screen's box."""
+        a, b = self._box(state)
+        count = self._sobol_count(len(state.starts))
+        sobol = qmc.Sobol(d=len(a), scramble=True, seed=state.seed)
         u = sobol.random_base2(max(0, int(np.ceil(np.log2(max(count, 1))))))[:count]
         return np.concatenate([state.starts, a + (b - a) * u])
 
@@ -215,11 +222,10 @@ class ScreenSLP(Tuner):
         return None
 
     def _more_points(self, state):
-        lo, hi = log_bounds(state.problem.names)
-        first = state.starts[0]
-        a, b = np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
+        """The next batch of the same Sobol sequence, after the screen's points."""
+        a, b = self._box(state)
         batch = self.local * self.radii
-        sobol = qmc.Sobol(d=len(first), scramble=True, seed=state.seed)
+        sobol = qmc.Sobol(d=len(a), scramble=True, seed=state.seed)
         sobol.fast_forward(len(state.screen_all) - len(state.starts) + state.step * batch)
         return a + (b - a) * sobol.random(batch)
 
@@ -353,9 +359,7 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
-        batch = self.local * self.radii
-        sobol = -(-(starts + self.screen) // batch) * batch - starts  # as many as fill the last batch
-        return (f"a screen of {starts} starts + {sobol} Sobol points, then {self.local} local solves side by side, "
+        return (f"a screen of {starts} starts + {self._sobol_count(starts)} Sobol points, then {self.local} local solves side by side, "
                 f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)")
 
     def progress_text(self, state, query, ev):
@@ -374,8 +378,7 @@ class ScreenSLP(Tuner):
                 f"{live} moving; {text}")
 
     def expected_evaluations(self, starts):
-        batch = self.local * self.radii
-        return -(-(starts + self.screen) // batch) + 2 * self.steps
+        return (starts + self._sobol_count(starts)) // (self.local * self.radii) + 2 * self.steps
 
     def candidates(self, state):
         """Each local solve's best evaluated point (holding first, then by merit); the given starts
