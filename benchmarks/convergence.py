@@ -4,6 +4,8 @@ and (with --derivatives) its derivatives.
     python -m benchmarks.convergence [--quick] [--out benchmarks/convergence.json] [--plot docs/convergence.png]
     python -m benchmarks.convergence --derivatives [--n 64] [--out benchmarks/derivatives.json] [--plot docs/derivatives.png]
     python -m benchmarks.convergence --readme-gradient
+    python -m benchmarks.convergence --step-check [--n 2048]
+    python -m benchmarks.convergence --artefact-search
 
 The limit (docs/model.md, "Step size") is computed two independent ways that must agree within the
 tolerances before anything else counts: `filippov` at dt = 1e-5 and plain `rk4` at dt = 1e-6. Then
@@ -18,6 +20,11 @@ central secants of the converged model (filippov at `--ref-dt`, 1e-4 s) at two w
 1e-2 and 3e-3. An entry counts only where the two secants agree (the limit is smooth there); it
 agrees where |AD - secant| <= 10 % |secant| + 0.01, both as elasticities (derivative over
 max(|value|, 1 N or 1 mm)).
+
+The step-check study runs a sweep of random gain sets and masses with and without the two-step check
+(`coopjax sweep --check-step`), times both, and judges every flagged row against the limit. The
+artefact search optimises against one coarse step on purpose (a cross-entropy search) and judges
+its best candidates against the limit: the case tests/test_step_check.py keeps comes from it.
 """
 
 from __future__ import annotations
@@ -250,6 +257,106 @@ def readme_gradient(dts=(2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4), at=0.5, log=print) -> 
     return {"terms": README_TERMS, "K_GP": at, "rows": rows}
 
 
+STUDY_BOX = {"K_GP": (0.05, 2.0), "K_GI": (0.01, 1.0), "tau": (0.1, 10.0), "G_e": (50.0, 3000.0)}
+
+
+def _wrong(coarse: dict, limit: dict) -> np.ndarray:
+    """Rows whose answer at a step misses the limit by more than a tolerance."""
+    return ~passes(errors(coarse, limit))
+
+
+def step_check_study(n: int, dt: float = 1e-3, ref_dt: float = 1e-4, log=print) -> dict:
+    """A sweep of n random gain sets (the derivative study's box) and masses (0.5 to 5 kg) at dt, with
+    and without the two-step check; the flagged rows against the limit (filippov at ref_dt)."""
+    from coopjax import sweeps
+
+    vary = {g: f"loguniform:{a}:{b}" for g, (a, b) in STUDY_BOX.items()} | {"M_b": "loguniform:0.5:5"}
+    seconds, tables = {}, {}
+    for checked in (False, True):
+        spec = sweeps.make_spec("carry", n, vary, {}, 0, dt=dt, check_step=checked)
+        start = time.perf_counter()
+        tables[checked] = sweeps.run(spec)
+        seconds[checked] = time.perf_counter() - start
+    cols = tables[True]
+    flagged = np.asarray(cols["status"]) == "step_artefact"
+    passed = np.asarray(cols["status"]) == "ok"
+    # Every row at the limit: what the check flags, and what it lets through.
+    table = {k: np.asarray(cols[k]) for k in (*STUDY_BOX, "M_b")}
+    limit = {k: np.asarray(v) for k, v in sweeps.run(sweeps.make_spec("carry", None, {}, {}, 0, table, dt=ref_dt)).items()}
+    wrong_all = _wrong({k: np.asarray(cols[k]) for k in TOLERANCE}, limit)
+    wrong = wrong_all[flagged]
+    error = np.asarray(cols["step_error"], float)
+    result = {"n": n, "dt": dt, "ref_dt": ref_dt, "flagged": int(flagged.sum()), "flagged_wrong_at_dt": int(wrong.sum()),
+              "ok_wrong_at_dt": int((wrong_all & passed).sum()),
+              "wrong_where_the_grip_holds": int((wrong_all & (limit["min_grip"] >= 10.0 - TOLERANCE["min_grip"])).sum()),
+              "median_step_error_ok": float(np.median(error[passed])), "p99_step_error_ok": float(np.percentile(error[passed], 99)),
+              "status_counts": {str(k): int(v) for k, v in zip(*np.unique(np.asarray(cols["status"]), return_counts=True))},
+              "seconds": {"unchecked": seconds[False], "checked": seconds[True]}}
+    log(f"{n} rows at dt = {dt:g}: {result['flagged']} flagged step_artefact, of which {result['flagged_wrong_at_dt']} "
+        f"miss the limit (filippov at {ref_dt:g}) by more than a tolerance; of the rows ok, {result['ok_wrong_at_dt']} "
+        f"miss it; {result['wrong_where_the_grip_holds']} of all that miss it hold the grip in the limit; rows ok: median step_error "
+        f"{result['median_step_error_ok']:.3g}, 99th percentile {result['p99_step_error_ok']:.3g}; statuses "
+        f"{result['status_counts']}; {seconds[True]:.1f} s checked against {seconds[False]:.1f} s unchecked "
+        f"(x{seconds[True] / seconds[False]:.2f}, compile included)")
+    return result
+
+
+def artefact_search(dt: float = 5e-3, mass: float = 4.0, rounds: int = 4, population: int = 1024, seed: int = 0,
+                    ref_dts=(1e-4, 5e-5), log=print) -> dict:
+    """Optimise against one step on purpose: a cross-entropy search over the 8 per-robot gains (log
+    box of the derivative study) on peak + 1.5 x lag in mm, the grip held (min grip within 0.05 N of
+    F_lim) and dt within the linearised stability limit, at one mass. Its 64 best are then judged
+    against the limit (filippov at two fine steps) and by the two-step check."""
+    import coopjax as cj
+    from coopjax import stability, step_check
+
+    names = [f"{g}_{r}" for g in STUDY_BOX for r in "LR"]
+    lo = np.log([STUDY_BOX[n[:-2]][0] for n in names])
+    hi = np.log([STUDY_BOX[n[:-2]][1] for n in names])
+    rng = np.random.default_rng(seed)
+
+    def metrics(x, step):
+        p = cj.make_params(**{n: np.exp(x[:, i]) for i, n in enumerate(names)}, M_b=np.full(len(x), mass))
+        m = cj.simulate(p, "carry", dt=step, check_dt=False).metrics
+        return {k: np.asarray(getattr(m, k)) for k in ("min_grip", "peak_grip", "rms_lag", "finite")}, p
+
+    def score(x):
+        m, p = metrics(x, dt)
+        limit, growth = stability.stable_dt(p, cj.Config("carry"))
+        ok = m["finite"] & (m["min_grip"] >= 10.0 - 0.05) & (np.asarray(limit) >= dt) & (np.asarray(growth) == 0)
+        return np.where(ok, m["peak_grip"] + 1.5e3 * m["rms_lag"], np.inf)
+
+    mean, spread = (lo + hi) / 2, (hi - lo) / 2
+    x = rng.uniform(lo, hi, (population, len(names)))
+    for r in range(rounds):
+        if r:
+            x = np.clip(mean + spread * rng.standard_normal((population, len(names))), lo, hi)
+        s = score(x)
+        order = np.argsort(s)
+        elite = x[order[:population // 10]]
+        mean, spread = elite.mean(0), elite.std(0) + 1e-3
+    best = x[order[:64]]
+    best = best[np.isfinite(s[order[:64]])]
+    coarse, _ = metrics(best, dt)
+    half, _ = metrics(best, dt / 2)
+    limits = [metrics(best, ref)[0] for ref in ref_dts]
+    wrong = _wrong(coarse, limits[0])
+    flagged = step_check.artefacts(step_check.step_error(coarse, half))
+    rows = []
+    for i in np.nonzero(wrong | flagged)[0]:
+        rows.append({"rank": int(i), "gains": dict(zip(names, np.exp(best[i]).tolist())),
+                     "at_dt": {k: float(coarse[k][i]) for k in TOLERANCE},
+                     "limit": [{k: float(lim[k][i]) for k in TOLERANCE} for lim in limits],
+                     "wrong_at_dt": bool(wrong[i]), "flagged": bool(flagged[i])})
+        log(f"rank {i}: at dt = {dt:g} peak {coarse['peak_grip'][i]:.1f} N, lag {coarse['rms_lag'][i] * 1e3:.2f} mm; "
+            f"limit peak {limits[0]['peak_grip'][i]:.1f} N, lag {limits[0]['rms_lag'][i] * 1e3:.2f} mm; "
+            f"{'wrong' if wrong[i] else 'right'} at dt, {'flagged' if flagged[i] else 'not flagged'} by the two-step check")
+    log(f"{len(best)} best candidates at dt = {dt:g}: {int(wrong.sum())} miss the limit by more than a tolerance, "
+        f"the two-step check flags {int(flagged.sum())} ({int((wrong & flagged).sum())} of the wrong ones)")
+    return {"dt": dt, "mass": mass, "candidates": len(best), "wrong": int(wrong.sum()), "flagged": int(flagged.sum()),
+            "wrong_and_flagged": int((wrong & flagged).sum()), "rows": rows}
+
+
 def plot_derivatives(result: dict, path: str) -> None:
     import matplotlib
 
@@ -292,10 +399,15 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", default=None, help="default docs/convergence.png (derivatives.png)")
     parser.add_argument("--batch", type=int, default=64, help="batch for the trajectories-per-second figure")
     parser.add_argument("--derivatives", action="store_true", help="the derivative study instead of the value study")
-    parser.add_argument("--n", type=int, default=64, help="derivative study: (gain set, mass) samples (default 64)")
+    parser.add_argument("--n", type=int, default=None,
+                        help="derivative study: (gain set, mass) samples (default 64); step check: rows (default 2048)")
     parser.add_argument("--ref-dt", type=float, default=1e-4, help="derivative study: the converged model's step")
     parser.add_argument("--readme-gradient", action="store_true",
                         help="the README's gradient example and each of its terms, AD against secants, dt 2e-3 to 1e-4")
+    parser.add_argument("--step-check", action="store_true",
+                        help="the two-step check on a sweep of --n random rows (default 2048 here): flags, cost, against the limit")
+    parser.add_argument("--artefact-search", action="store_true",
+                        help="optimise against dt = 5e-3 on purpose and judge the 64 best against the limit and the check")
     args = parser.parse_args(argv)
 
     import jax
@@ -307,9 +419,17 @@ def main(argv=None) -> int:
     if args.readme_gradient:
         readme_gradient()
         return 0
+    if args.step_check or args.artefact_search:
+        out = args.out or ("benchmarks/step_check.json" if args.step_check else "benchmarks/artefacts.json")
+        result = step_check_study(args.n or 2048) if args.step_check else artefact_search()
+        result["machine"] = {"jax": jax.__version__, "devices": jax.device_count()}
+        with open(out, "w") as f:
+            json.dump(result, f, indent=1)
+        print(f"wrote {out}")
+        return 0
     if args.derivatives:
         out, plot_path = args.out or "benchmarks/derivatives.json", args.plot or "docs/derivatives.png"
-        result = derivative_study(args.n, args.ref_dt)
+        result = derivative_study(args.n or 64, args.ref_dt)
         os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
         with open(out, "w") as f:
             json.dump(result, f)

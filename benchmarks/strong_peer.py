@@ -211,10 +211,16 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return r0, r1, sd0, sd1, sigma
 
     @inline
-    def lam_of(sd0, sd1, sigma_n, theta_b, theta_a, hold, in_c):
-        """filippov.weight with the substep start's fractions."""
+    def raw_of(sd0, sd1):
+        """filippov.sliding_weight: lambda* before its clip."""
         d = sd0 - sd1
-        lam_star = min(max(sd0 / d, Z0), ONE) if d > EPS else (ONE if sd0 >= Z0 else Z0)
+        return sd0 / d if d > EPS else (ONE if sd0 >= Z0 else Z0)
+
+    @inline
+    def lam_of(sd0, sd1, sigma_n, theta_b, theta_a, hold, in_c, free):
+        """filippov.weight with the substep start's fractions."""
+        raw = raw_of(sd0, sd1)
+        lam_star = raw if free else min(max(raw, Z0), ONE)
         lam = (ONE - theta_b) * lam_star if sigma_n < Z0 else theta_a + (ONE - theta_a) * lam_star
         lam = T(hold) if hold >= 0 else lam
         return lam if in_c else Z0
@@ -283,6 +289,17 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return fresh and (up or down or kink), min(tau, tau0), hold
 
     @inline
+    def sliding_exit(free, start, end, h):
+        """filippov.sliding_exit: (found, time, hold) where lambda* left [0, 1] on a piece slid through."""
+        down = free and end < Z0
+        up = free and end > ONE
+        if down:
+            return True, min(max(start / (start - end), Z0), ONE) * h, 0
+        if up:
+            return True, min(max((ONE - start) / (end - start), Z0), ONE) * h, 1
+        return False, INF, 0
+
+    @inline
     def evaluate(P, b, y, t, cos, sin, on_L, on_R, off_L, off_R):
         """Both robots' fields at state y (a 20-tuple, coopjax's row order) and the body's a_o."""
         x_o, v_o = y[18], y[19]
@@ -310,17 +327,18 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return ((kL if (on_L or dL > Z0) else Z0) - P[iFlim, b], (kR if (on_R or dR > Z0) else Z0) - P[iFlim + 1, b])
 
     @inline
-    def stage(P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR):
-        """One of the stages after the first: the rates at y + c k, t + c, with the substep's plan."""
+    def stage(P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR, frL, frR):
+        """One of the stages after the first: the rates at y + c k, t + c, with the substep's plan,
+        and each robot's unclipped lambda* there."""
         ys = axpy(y, c, k)
         ts, cs, ss = advance(t, cos, sin, c)
         gL, gR, jL, jR, _, _, a_s, _, _, _, _ = evaluate(P, b, ys, ts, cs, ss, on_L, on_R, impL, impR)
-        lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL)
-        lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR)
-        return assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s)
+        lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL, frL)
+        lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR, frR)
+        return assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s), raw_of(gL[2], gL[3]), raw_of(gR[2], gR[3])
 
     @inline
-    def substep(P, b, y, t, cos, sin, remaining, on_L, on_R, dt, last):
+    def substep(P, b, y, t, cos, sin, remaining, on_L, on_R, keptL, keptR, dt, last):
         """filippov.substep for one sample: the new state, the plan and the start's force."""
         sn_L, sn_R = sigma_n_of(P, b, y, on_L, on_R)
         fL, fR, inL, inR, FL, FR, a_o, dL, ddL, dR, ddR = evaluate(P, b, y, t, cos, sin, on_L, on_R, False, False)
@@ -337,17 +355,26 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         firstL = (timeL <= h) and (timeL <= remaining) and not last
         firstR = (timeR <= h) and (timeR <= remaining) and not last
         impL, impR = firstL and hitL <= tauL, firstR and hitR <= tauR
-        holdL = holdL if firstL else -1
-        holdR = holdR if firstR else -1
+        holdL = keptL if keptL >= 0 else (holdL if firstL else -1)
+        holdR = keptR if keptR >= 0 else (holdR if firstR else -1)
         tbL, taL = fractions(fL[2], fL[3], sn_L, h)
         tbR, taR = fractions(fR[2], fR[3], sn_R, h)
+        # A robot sliding at the start slides through the piece, lambda* unclipped (filippov.substep).
+        rawL, rawR = raw_of(fL[2], fL[3]), raw_of(fR[2], fR[3])
+        frL = (inL and holdL < 0 and fL[2] - fL[3] > EPS and rawL > Z0 and rawL < ONE and not last
+               and ((tbL < ONE) if sn_L < Z0 else (taL < ONE)))
+        frR = (inR and holdR < 0 and fR[2] - fR[3] > EPS and rawR > Z0 and rawR < ONE and not last
+               and ((tbR < ONE) if sn_R < Z0 else (taR < ONE)))
         # Stage 0 (at the start), then the three others.
-        lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL)
-        lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR)
+        lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL)
+        lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR, frR)
         k = assemble(blend(fL[0], fL[1], lamL), blend(fR[0], fR[1], lamR), y[19], a_o)
-        k2 = stage(P, b, y, k, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
-        k3 = stage(P, b, y, k2, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
-        k4 = stage(P, b, y, k3, h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR)
+        k2, _, _ = stage(P, b, y, k, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+                         holdR, frL, frR)
+        k3, _, _ = stage(P, b, y, k2, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+                         holdR, frL, frR)
+        k4, endL, endR = stage(P, b, y, k3, h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+                               holdR, frL, frR)
         total = weighted(k, k2, k3, k4)
         # The switch held through the whole piece, below (off) or above (on) the surface.
         offL = inL and sn_L < Z0 and (holdL == 0 or (holdL < 0 and tbL >= ONE))
@@ -356,7 +383,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         onR_ = inR and sn_R > Z0 and (holdR == 1 or (holdR < 0 and taR >= ONE))
         heldL = (offL, onL_, sn_L, fL[2], fL[3], inL, fL[2] + lamL * (fL[3] - fL[2]))
         heldR = (offR, onR_, sn_R, fR[2], fR[3], inR, fR[2] + lamR * (fR[3] - fR[2]))
-        return total, h, impL, impR, holdL >= 0, holdR >= 0, FL, FR, heldL, heldR, k, k2, k3, k4
+        slides = (frL, rawL, endL, frR, rawR, endR)
+        # The piece ends on the surface where its plan ended it at a switch (not a hold kept from an exit).
+        return total, h, impL, impR, holdL >= 0 and keptL < 0, holdR >= 0 and keptR < 0, FL, FR, heldL, heldR, k, k2, k3, k4, slides
 
     @inline
     def forces_at(P, b, y, on_L, on_R, off_L, off_R):
@@ -421,10 +450,10 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     # computes is used after it, and in one long function numba keeps every loop's names alive.
 
     @inline
-    def sample_loop(P, S, t, cos_t, sin_t, in_grip, in_lag, dt):
+    def sample_loop(P, S, t, cos_t, sin_t, in_grip, lag_weight, dt):
         """The sample at t_k: forces and the lag (objectives), and the step's setup."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
         for b in range(P.shape[1]):
             yb = load(y, b)
             FL, FR = forces_at(P, b, yb, False, False, False, False)
@@ -435,25 +464,26 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             leastR[b] = min(leastR[b], FR) if (keep and in_grip) else leastR[b]
             peakL[b] = max(peakL[b], FL) if keep else peakL[b]
             peakR[b] = max(peakR[b], FR) if keep else peakR[b]
-            lag[b] = lag[b] + (sq(xL - yb[0]) + sq(xR - yb[1])) if (keep and in_lag) else lag[b]
+            lag[b] = lag[b] + lag_weight * (sq(xL - yb[0]) + sq(xR - yb[1])) if keep else lag[b]
             F0L[b], F0R[b] = FL, FR
             FeL[b], FeR[b] = FL, FR
             rem[b] = dt
             off[b] = Z0
             onL[b] = False
             onR[b] = False
+            kpL[b], kpR[b] = -1, -1
             store(yn, b, yb)
 
     @inline
     def piece_loop(P, S, t, cos_t, sin_t, dt, last, step_in_grip, after, F_max):
         """One piece of the sliding-mode step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
         for b in range(P.shape[1]):
             yb = load(yn, b)
             tb, cb, sb = advance(t, cos_t, sin_t, off[b])
-            total, h, iL, iR, sfL, sfR, sL, sR, heldL, heldR, k1, k2, k3, k4 = substep(
-                P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], dt, last)
+            total, h, iL, iR, sfL, sfR, sL, sR, heldL, heldR, k1, k2, k3, k4, slides = substep(
+                P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], kpL[b], kpR[b], dt, last)
             new = axpy(yb, h / T(6.0), total)
             # A crossing the piece held the switch through: the piece ends there, on RK4's continuous
             # extension (filippov.step).
@@ -463,7 +493,16 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
                                not last)
             fR, tR, hR = found(heldR[0], heldR[1], heldR[2], heldR[3], heldR[4], heldR[5], heldR[6], kR, P[iFlim + 1, b], h,
                                not last)
+            # Or a sliding exit (filippov.sliding_exit), merged per robot as filippov.step does.
+            xL, uL, gL = sliding_exit(slides[0], slides[1], slides[2], h)
+            xR, uR, gR = sliding_exit(slides[3], slides[4], slides[5], h)
+            hL = gL if (xL and uL < (tL if fL else INF)) else hL
+            hR = gR if (xR and uR < (tR if fR else INF)) else hR
+            tL = min(tL if fL else INF, uL)
+            tR = min(tR if fR else INF, uR)
+            fL, fR = fL or xL, fR or xR
             h_eff = h
+            kL_next, kR_next = -1, -1
             offL, offR = iL, iR
             if fL or fR:
                 tau = min(tL if fL else INF, tR if fR else INF)
@@ -476,6 +515,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
                 sfL = fL and tL <= tau and hL >= 0
                 sfR = fR and tR <= tau and hR >= 0
                 iL, iR = False, False
+                kL_next = gL if (xL and uL <= tau) else -1
+                kR_next = gR if (xR and uR <= tau) else -1
+            kpL[b], kpR[b] = kL_next, kR_next
             eL, eR = forces_at(P, b, new, onL[b], onR[b], offL, offR)
             store(yn, b, new)
             rem[b] = rem[b] - h_eff
@@ -512,7 +554,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, after, F_max):
         """A plain RK4 step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
         dt2 = dt / TWO
         dt6 = dt / T(6.0)
         tm, cm, sm = advance(t, cos_t, sin_t, dt2)
@@ -541,7 +583,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         """integration/loop.py's rule: a non-finite state or an absurd force at the step's start
         freezes the sample at its last good state."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
         for b in range(P.shape[1]):
             bad = abs(F0L[b]) > F_bound or abs(F0R[b]) > F_bound
             for r in range(20):
@@ -561,12 +603,15 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
              np.empty(m, P.dtype), np.empty(m, P.dtype), np.full(m, INF, P.dtype), np.full(m, INF, P.dtype),
              np.full(m, -INF, P.dtype), np.full(m, -INF, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype),
              np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.full(m, INF, P.dtype),
-             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_))
+             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_),
+             np.full(m, -1, np.int64), np.full(m, -1, np.int64))
         for k in range(n + 1):
             t = T(k) * dt
             cos_t, sin_t = T(math.cos(TWO_PI * t)), T(math.sin(TWO_PI * t))
             step_in_grip = (k >= g0) and (k < g1)
-            sample_loop(P, S, t, cos_t, sin_t, (k >= g0) and (k <= g1), (k >= l0) and (k <= l1), dt)
+            # The lag's trapezoidal weights over its window (objectives/tracking.py).
+            lag_weight = (HALF if (k == l0 or k == l1) else ONE) if (k >= l0 and k <= l1) else Z0
+            sample_loop(P, S, t, cos_t, sin_t, (k >= g0) and (k <= g1), lag_weight, dt)
             if k == n:
                 break
             if filippov:
@@ -578,10 +623,10 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
                 rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, k >= g1, F_max)
             divergence_loop(P, S, t, dt, F_bound)
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa) = S
+         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
         grip_span = T(max(0, g1 - g0)) * dt
         after_span = T(max(0, n - g1)) * dt
-        n_lag = max(0, l1 - l0 + 1)
+        n_lag = max(0, l1 - l0)
         nan = T(np.nan)
         for b in range(m):
             d = diverged[b]

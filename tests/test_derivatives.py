@@ -29,10 +29,10 @@ def test_the_readme_gradient_has_the_sign_and_size_of_the_limits_slope():
     _, ad = jax.jit(lambda k: jax.jvp(readme_loss, (k,), (1.0,)))(0.5)
     ad = float(ad)
     assert np.sign(ad) == np.sign(narrow) > 0
-    # Measured: +0.0294 against the limit's +0.0236 (+25 %): the loss's slope is crush (about -0.20)
-    # plus the lag term (about +0.22), so an error under 3 % of either is 25 % of the sum
+    # Measured: +0.0244 against the limit's +0.0233 here (+5 %): the loss's slope is crush (about
+    # -0.20) plus the lag term (about +0.22), so an error of 0.3 % in either is 3 % of the sum
     # (docs/model.md, "Derivatives").
-    assert abs(ad / narrow - 1) < 0.3
+    assert abs(ad / narrow - 1) < 0.1
 
 
 @pytest.mark.slow
@@ -40,7 +40,7 @@ def test_the_derivative_study_agrees_on_a_small_sample():
     result = convergence.derivative_study(6, 2.5e-4, dts=(1e-3,), log=lambda s: None)
     row = next(r for r in result["rows"] if r["output"] == "all")
     assert row["entries"] >= 60  # of 6 samples x 4 outputs x 4 gains, where the limit is smooth
-    assert row["agree"] >= 0.9 and row["wrong_sign"] == 0, row
+    assert row["agree"] >= 0.95 and row["wrong_sign"] == 0, row
 
 
 def test_the_study_counts_agreement_as_documented():

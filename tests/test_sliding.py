@@ -229,3 +229,59 @@ def test_a_crossing_the_first_order_prediction_puts_beyond_the_step_is_located_a
     located = np.asarray(path.surface[:, 0, 0])
     assert located.sum() == 1, path
     assert ends[located][0] == pytest.approx(t_star, abs=2e-3 * h)
+
+
+def test_the_end_of_a_sliding_mode_is_located_at_the_true_time():
+    """Both robots slide on F = F_lim, and robot R's Filippov weight falls to 0 inside a step: its
+    sliding ends there and its force leaves the surface downwards. The step ends a piece there (the
+    field's kink), at the time an independent solve_ivp of the sliding motion finds."""
+    import jax
+    from scipy.integrate import solve_ivp
+
+    from coopjax import model
+    from coopjax.integration import filippov
+    from coopjax.scenarios import Clock, get
+    from tests import reference_model as ref
+
+    dt, k = 1e-3, 2448  # the README's example (Table 1 at 1 kg): robot R's sliding ends at t = 2.4488 s
+    params = cj.make_params(M_b=np.array([1.0]))
+    solution = cj.simulate(params, "carry", dt=dt, every=1, check_dt=False)
+    w = np.asarray(solution.trajectory.aux.w[:, :, 0])
+    assert w[k, 1] > 0 and w[k + 1, 1] == 0 and 0 < w[k + 1, 0] < 1  # R slides, then does not; L slides on
+    y = np.array(solution.trajectory.y[k, :, 0])
+    t0, ps, scenario = k * dt, model.robots(params), get("carry")
+    options = cj.Config("carry", dt=dt).options
+    p = ref.TABLE1
+
+    def sliding(t, z):
+        """Both robots on their surfaces, each with its Filippov weight; (rates, R's weight)."""
+        x_o, v_o = z[18], z[19]
+        dz, weights = np.zeros(20), []
+        for i, s in enumerate((1.0, -1.0)):
+            yi = z[9 * i:9 * i + 9]
+            F = p["F_lim"]
+            off = ref.robot_rates(p, s, yi, F, 0.0, F, *ref.command("carry", i, t))
+            on = ref.robot_rates(p, s, yi, F, 1.0, F, *ref.command("carry", i, t))
+            delta_dot = s * (yi[1] - v_o)  # the body's acceleration is 0: both forces are F_lim
+            sd0, sd1 = p["K_g"] * delta_dot + p["R_g"] * s * off[1], p["K_g"] * delta_dot + p["R_g"] * s * on[1]
+            lam = sd0 / (sd0 - sd1)
+            dz[9 * i:9 * i + 9] = off + lam * (on - off)
+            weights.append(lam)
+        dz[18] = v_o
+        return dz, weights[1]
+
+    exit_R = lambda t, z: sliding(t, z)[1]
+    exit_R.terminal = True
+    z0 = np.concatenate([y[:18].reshape(9, 2).T.reshape(18), y[18:]])  # coopjax's layout -> robot-major
+    sol = solve_ivp(lambda t, z: sliding(t, z)[0], (t0, t0 + dt), z0, method="DOP853", rtol=1e-12, atol=1e-12,
+                    events=exit_R)
+    t_star = sol.t_events[0][0] - t0
+    assert 0.05 * dt < t_star < 0.95 * dt
+
+    _, _, path = jax.jit(lambda y: filippov.step(ps, y, t0, dt, scenario, options))(jnp.asarray(y)[:, None])
+    ends = np.cumsum(np.asarray(path.fraction[:, 0])) * dt
+    located = np.asarray(path.surface[:, 1, 0])  # robot R's pieces that end on the surface
+    assert located.sum() == 1, path
+    # The time is lambda*'s linear interpolation through the piece (filippov.sliding_exit), O(dt^2):
+    # measured here 1.1 % of the step early.
+    assert ends[located][0] == pytest.approx(t_star, abs=0.03 * dt)

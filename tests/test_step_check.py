@@ -8,13 +8,14 @@ import coopjax as cj
 from coopjax import step_check, sweeps
 from tuning import problem as pb
 
-# Found by optimising against one step: a cross-entropy search (4 rounds of 1024 candidates, the
-# elite tenth kept) on peak + 1.5 x lag, the grip held, at M_b = 4 kg with filippov at dt = 5e-3.
-# Its fifth best candidate holds there with a 31.3 N peak and 6.2 mm lag; the dt -> 0 limit (filippov
-# at 1e-4 and at 5e-5 agree) is a 64.8 N peak and 12.9 mm lag. The other 63 of the top 64 agree
-# with the limit within the tolerances.
-ARTEFACT = dict(K_GP_L=0.06932, K_GP_R=0.0478069, K_GI_L=0.0385287, K_GI_R=0.0290473, tau_L=2.78613,
-                tau_R=0.720453, G_e_L=906.567, G_e_R=1944.74)
+# Found by optimising against one step (`python -m benchmarks.convergence --artefact-search`): a
+# cross-entropy search (4 rounds of 1024 candidates in the log box of the derivative study, the best
+# tenth kept) on peak + 1.5 x lag in mm, the grip held and the step within the linearised limit, at
+# M_b = 4 kg with filippov at dt = 5e-3. Its 15th best candidate holds there with a 13.2 mm lag (peak
+# 71.2 N); the dt -> 0 limit (filippov at 1e-4 and at 5e-5 agree) is 15.7 mm (peak 72.4 N). Of the 23
+# best that hold, one more misses the limit by more than a tolerance; the check flags both.
+ARTEFACT = dict(K_GP_L=0.053058, K_GP_R=0.101801, K_GI_L=0.132862, K_GI_R=0.038679, tau_L=0.392435,
+                tau_R=1.856302, G_e_L=2326.329928, G_e_R=1203.344196)
 ARTEFACT_DT = 5e-3
 HOLDS = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0)
 
@@ -36,19 +37,19 @@ def test_a_sweep_marks_the_optimised_artefact_and_passes_converged_rows():
     spec = sweeps.make_spec("carry", None, {}, {}, 0, table, dt=ARTEFACT_DT, check_step=True)
     cols = sweeps.run(spec)
     assert cols["status"].tolist() == ["step_artefact", "ok"]
-    assert cols["step_error"][0] > 10 and cols["step_error"][1] < 0.2
+    assert cols["step_error"][0] > 5 and cols["step_error"][1] < 0.2
     assert not cols["finite"][0]
     # The rows' own answers are kept: the artefact still says it holds with a low peak at this step.
     plain = sweeps.run(sweeps.make_spec("carry", None, {}, {}, 0, table, dt=ARTEFACT_DT))
     for name in ("min_grip", "peak_grip", "rms_lag"):
         np.testing.assert_array_equal(cols[name], plain[name])
-    assert cols["min_grip"][0] > 9.99 and cols["peak_grip"][0] < 32.0
+    assert cols["min_grip"][0] > 9.99 and cols["rms_lag"][0] < 13.5e-3
 
 
 def test_the_judge_rejects_the_artefact():
     verdict = pb.judge(ARTEFACT, [4.0], dt=ARTEFACT_DT)
     assert verdict.step_artefact and not verdict.holds and verdict.score == float("inf")
-    assert verdict.min_grip > 9.99 and verdict.peak_grip < 32.0  # what the single step alone would claim
+    assert verdict.min_grip > 9.99 and verdict.rms_lag < 13.5e-3  # what the single step alone would claim
     unchecked = pb.judge(ARTEFACT, [4.0], dt=ARTEFACT_DT, check_step=False)
     assert unchecked.holds and np.isnan(unchecked.step_error)
 
@@ -58,10 +59,10 @@ def test_the_artefact_is_wrong_and_the_limit_agrees_two_ways():
     params = cj.make_params(**ARTEFACT, M_b=4.0)
     coarse = cj.simulate(params, "carry", dt=ARTEFACT_DT, check_dt=False).metrics
     limits = [cj.simulate(params, "carry", dt=dt, check_dt=False).metrics for dt in (1e-4, 5e-5)]
-    for name in ("peak_grip", "rms_lag"):
+    for name, below in (("peak_grip", 0.99), ("rms_lag", 0.9)):
         a, b = (float(getattr(m, name)) for m in limits)
         assert abs(a / b - 1) < 2e-3, name  # the limit, by two steps
-        assert float(getattr(coarse, name)) < 0.6 * b, name  # the single step's answer is far below it
+        assert float(getattr(coarse, name)) < below * b, name  # the single step's answer is below it
 
 
 def test_check_step_needs_the_compared_metrics():

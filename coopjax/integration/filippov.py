@@ -30,11 +30,17 @@ predicted at its start (or at the step's end). The events are where the field, o
   contact is held off up to the impact and on after it (no delta > 0 test);
 - the grip force reaching F_lim from below or from above (the switch), predicted to first order from
   sigma and its rate; the switch is held as it is up to the event;
-- the Kelvin-Voigt force passing 0 while the tip touches, below F_lim (the contact force stops at 0).
+- the Kelvin-Voigt force passing 0 while the tip touches, below F_lim (the contact force stops at 0);
+- the end of a sliding mode, where lambda* leaves [0, 1] and the force leaves the surface (downwards
+  at 0, upwards at 1). The field is continuous there but kinks; unlocated, the kink's place in the
+  step moves with the parameters and the derivative errs by O(dt) at every exit. A robot sliding at a
+  piece's start slides through the whole piece with lambda* unclipped (the sliding motion's smooth
+  continuation), and the next piece holds the switch off (or on) as the force leaves.
 A first-order prediction is late for a force that accelerates towards F_lim (or 0), so each piece is
 also a trial: where a robot's switch was held through it (off below the surface, on above) and its
-own RK4 solution ends across the surface, or the Kelvin-Voigt force changed sign while touching, the
-piece ends at the crossing instead (`crossing`, from the start's value and rate and the trial's end
+own RK4 solution ends across the surface, or the Kelvin-Voigt force changed sign while touching, or
+a sliding robot's lambda* left [0, 1] by the last stage (`sliding_exit`), the piece ends at the
+crossing instead (`crossing`, from the start's value and rate and the trial's end
 value, so the stiff modes are in it), on RK4's continuous extension (`dense`). The rest of the step
 is the next piece. The last piece of a step is not cut.
 A substep of zero length is an exact no-op, so the step map is continuous. Unlocated, an event's
@@ -96,6 +102,7 @@ class Contact(NamedTuple):
     on: tuple
     off: tuple
     hold: tuple | None = None
+    free: tuple | None = None  # (B,) bool per robot: sliding, lambda* not clipped (the exit trial)
 
 
 class Fields(NamedTuple):
@@ -171,17 +178,25 @@ def fractions(f: Fields, sigma_n, h):
     return theta_below, theta_above
 
 
-def weight(f: Fields, sigma_n, h, hold=None, theta=None):
+def sliding_weight(f: Fields):
+    """lambda* of step 1 before its clip to [0, 1]: sd0 / Delta where the rates differ, else H(sd0).
+    On the surface it is the weight that keeps sigma = 0; it leaves [0, 1] where the sliding ends."""
+    sd0, sd1 = f.sd0, f.sd1
+    delta = sd0 - sd1
+    sliding = delta > EPS
+    return jnp.where(sliding, sd0 / jnp.where(sliding, delta, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
+
+
+def weight(f: Fields, sigma_n, h, hold=None, theta=None, free=None):
     """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
 
     sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,); `theta` the
     substep start's `fractions` (taken from this point's rates if None); `hold` (B,) holds the
-    switch off (0) or on (1) where it is not -1.
+    switch off (0) or on (1) where it is not -1; where `free` (B,) holds, lambda* is not clipped (the
+    sliding motion continued past its exit, for `step` to locate the exit on the piece's solution).
     """
-    sd0, sd1 = f.sd0, f.sd1
-    delta = sd0 - sd1
-    sliding = delta > EPS
-    lam_star = jnp.where(sliding, jnp.clip(sd0 / jnp.where(sliding, delta, 1.0), 0.0, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
+    raw = sliding_weight(f)
+    lam_star = jnp.clip(raw, 0.0, 1.0) if free is None else jnp.where(free, raw, jnp.clip(raw, 0.0, 1.0))
     theta_below, theta_above = fractions(f, sigma_n, h) if theta is None else theta
     lam = jnp.where(sigma_n < 0.0, (1.0 - theta_below) * lam_star, theta_above + (1.0 - theta_above) * lam_star)
     if hold is not None:
@@ -207,8 +222,9 @@ def aux(f: Fields, lam) -> model.Aux:
 
 def _rates(fs, body, sigma_n, h, contact: Contact | None, thetas) -> Rows:
     holds = (None, None) if contact is None or contact.hold is None else contact.hold
-    return Rows(tuple(combine(f, weight(f, s_n, h, hold, theta)) for f, s_n, hold, theta in zip(fs, sigma_n, holds, thetas)),
-                body)
+    frees = (None, None) if contact is None or contact.free is None else contact.free
+    return Rows(tuple(combine(f, weight(f, s_n, h, hold, theta, free))
+                      for f, s_n, hold, theta, free in zip(fs, sigma_n, holds, thetas, frees)), body)
 
 
 def _axpy(rows: Rows, c, k: Rows) -> Rows:
@@ -268,9 +284,10 @@ def switching_time(f: Fields, shortest):
     return first, jnp.where(jnp.isfinite(first), hold, -1)
 
 
-def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last) -> Plan:
+def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last, kept) -> Plan:
     """The next substep: up to the first event of either robot within `remaining` (all of it for
-    the `last` piece a step has)."""
+    the `last` piece a step has). `kept` (per robot) holds the switch of a robot whose sliding has
+    just ended: off (0) below the surface, on (1) above it, -1 for none."""
     times, holds, impacts = [], [], []
     for i in range(2):
         tau, hold = switching_time(fs[i], SHORTEST_EVENT * dt)
@@ -284,7 +301,7 @@ def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last) -> Plan:
     h = jnp.where(last, remaining, jnp.minimum(jnp.minimum(*times), remaining))
     first = tuple((times[i] <= h) & (times[i] <= remaining) & ~last for i in range(2))  # ties: both at once
     impact = tuple(first[i] & impacts[i] for i in range(2))
-    hold = tuple(jnp.where(first[i], holds[i], -1) for i in range(2))
+    hold = tuple(jnp.where(kept[i] >= 0, kept[i], jnp.where(first[i], holds[i], -1)) for i in range(2))
     return Plan(h, on, impact, hold, impact)
 
 
@@ -335,13 +352,29 @@ def trial_crossing(g: Held, kelvin_end, F_lim, h, fresh):
     return fresh & (up | down | kink), jnp.minimum(tau, tau0), hold
 
 
-def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, last=False):
+def sliding_exit(free, start, end, h):
+    """One robot's sliding exit found on a piece it slid through (`free`): (found, time, hold).
+    lambda* (unclipped) left [0, 1] between its values at the piece's start and at the last stage:
+    below 0 the force leaves the surface downwards (switch off after it), above 1 upwards (on).
+    The time is the linear interpolation of lambda*; its error, O(h^2), moves the exit's kink by
+    that much, which changes the step by O(h^4)."""
+    down, up = free & (end < 0.0), free & (end > 1.0)
+    denominator = jnp.where(down, start - end, jnp.where(up, end - start, 1.0))
+    share = jnp.where(down, start, 1.0 - start) / jnp.where(down | up, denominator, 1.0)
+    return down | up, jnp.where(down | up, jnp.clip(share, 0.0, 1.0) * h, jnp.inf), jnp.where(up, 1, 0)
+
+
+def substep(ps, rows: Rows, clock: Clock, remaining, on, kept, dt, scenario, options, last=False):
     """RK4 over the next piece of a step: up to the first event predicted at its start, or the rest
-    of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit.
+    of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit,
+    `kept` the switch of robots whose sliding has just ended (`plan`).
 
     The first stage is the substep's start: its fields give the plan (length and overrides) and
-    the fractions theta for all four. Returns the new state, the plan, the signals at the start,
-    each robot's `Held` and the four stages' rates (for `dense`).
+    the fractions theta for all four. A robot sliding at the start (on the surface, 0 < lambda* < 1)
+    slides through the whole piece, lambda* unclipped, unless it is the step's last piece.
+    Returns the new state, the plan, the signals at the start, each robot's `Held`, the four
+    stages' rates (for `dense`), and per robot whether it slides through the piece with its
+    unclipped lambda* at the first and the last stage (for `sliding_exit`).
     """
     # Every stage's theta uses sigma at the substep start (step 2 of the weight): the contact alone.
     no = jnp.zeros_like(on[0])
@@ -351,9 +384,13 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, 
     # other three stages do not compute (and discard) them.
     unheld = jnp.full(no.shape, -1)
     fs, body = fields(ps, rows, clock, Contact(on, (no, no), (unheld, unheld)), scenario, options)
-    part = plan(ps, rows, fs, body, remaining, on, dt, options, last)
+    part = plan(ps, rows, fs, body, remaining, on, dt, options, last, kept)
     thetas = tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n))
-    contact = Contact(part.on, part.off, part.hold)
+    raw = tuple(sliding_weight(f) for f in fs)
+    free = tuple(f.in_contact & (hold < 0) & (f.sd0 - f.sd1 > EPS) & (r > 0.0) & (r < 1.0) & ~last
+                 & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
+                 for f, r, s_n, hold, (theta_below, theta_above) in zip(fs, raw, sigma_n, part.hold, thetas))
+    contact = Contact(part.on, part.off, part.hold, free)
     k = _rates(fs, body, sigma_n, part.h, contact, thetas)
     weights = tuple(weight(f, s_n, part.h, hold, theta) for f, s_n, hold, theta in zip(fs, sigma_n, part.hold, thetas))
     signals = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights)))))
@@ -363,12 +400,12 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, 
         a, b = tableau
         fs, body = fields(ps, _axpy(rows, a * part.h, k_prev), clock.advance(a * part.h), contact, scenario, options)
         k = _rates(fs, body, sigma_n, part.h, contact, thetas)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), k
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (k, jnp.stack([sliding_weight(f) for f in fs]))
 
     # The other three stages as a `lax.scan` over the tableau: one stage body for XLA to compile
     # instead of three copies.
     tableau = (jnp.asarray(RK4_A[1:], remaining.dtype), jnp.asarray(RK4_B[1:], remaining.dtype))
-    (_, total), ks = jax.lax.scan(stage, (k, k), tableau)
+    (_, total), (ks, raws) = jax.lax.scan(stage, (k, k), tableau)
     # Per robot, the switch held off (on) through the whole piece below (above) the surface: where
     # `step` looks at the piece's end for a crossing its start did not predict.
     held = []
@@ -376,7 +413,8 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, dt, scenario, options, 
         off = f.in_contact & (s_n < 0.0) & ((hold == 0) | ((hold < 0) & (theta_below >= 1.0)))
         on_ = f.in_contact & (s_n > 0.0) & ((hold == 1) | ((hold < 0) & (theta_above >= 1.0)))
         held.append(Held(off, on_, s_n, f.sd0, f.sd1, f.in_contact, f.sd0 + lam * (f.sd1 - f.sd0)))
-    return _axpy(rows, part.h / 6, total), part, signals, tuple(held), (k, ks)
+    slides = tuple((fr, r, raws[-1, i]) for i, (fr, r) in enumerate(zip(free, raw)))
+    return _axpy(rows, part.h / 6, total), part, signals, tuple(held), (k, ks), slides
 
 
 def dense(rows, h, ks, theta):
@@ -403,14 +441,18 @@ def step(params, y, t, dt, scenario, options):
     F0 = jnp.stack([c[1] for c in _contacts(ps, rows, options)])
 
     def run(carry, j):
-        rows, remaining, offset, on, F_end, signals = carry
+        rows, remaining, offset, on, kept, F_end, signals = carry
         last = j == PIECES - 1
-        new, part, start_signals, held, ks = substep(ps, rows, clock.advance(offset), remaining, on, dt, scenario, options,
-                                                     last=last)
+        new, part, start_signals, held, ks, slides = substep(ps, rows, clock.advance(offset), remaining, on, kept, dt,
+                                                             scenario, options, last=last)
         contact = Contact(part.on, part.off, part.hold)
         touch = _contacts(ps, new, options, contact)
-        # The piece as a trial: cut at a crossing it held the switch through (module docstring).
-        found = tuple(trial_crossing(g, c[2], p.F_lim, part.h, ~last) for g, c, p in zip(held, touch, ps))
+        # The piece as a trial: cut at a crossing it held the switch through, or where a robot's
+        # sliding ended (module docstring).
+        crossings = tuple(trial_crossing(g, c[2], p.F_lim, part.h, ~last) for g, c, p in zip(held, touch, ps))
+        exits = tuple(sliding_exit(*slide, part.h) for slide in slides)
+        found = tuple((fc | fe, jnp.minimum(jnp.where(fc, tc, jnp.inf), te), jnp.where(fe & (te < tc), he, hc))
+                      for (fc, tc, hc), (fe, te, he) in zip(crossings, exits))
         flag = found[0][0] | found[1][0]
         tau = jnp.minimum(jnp.where(found[0][0], found[0][1], jnp.inf), jnp.where(found[1][0], found[1][1], jnp.inf))
         h = jnp.where(flag, tau, part.h)
@@ -426,20 +468,26 @@ def step(params, y, t, dt, scenario, options):
         signals = jax.tree_util.tree_map(lambda s, n: jnp.where(offset == 0.0, n, s), signals, start_signals)
         impact = tuple(i & ~flag for i in part.impact)
         at_tau = [f & (t_ <= tau) for f, t_, _ in found]
-        surface = jnp.stack([jnp.where(flag, a & (hd >= 0), hold >= 0) for a, (_, _, hd), hold in zip(at_tau, found, part.hold)])
-        carry = (cut, remaining - h, offset + h, impact, end, signals)
+        # A piece ends on the surface where it is cut at a crossing or a sliding exit, or where its
+        # plan ended it at a switch (a hold kept from a sliding exit is not one).
+        surface = jnp.stack([jnp.where(flag, a & (hd >= 0), (hold >= 0) & (k_in < 0))
+                             for a, (_, _, hd), hold, k_in in zip(at_tau, found, part.hold, kept)])
+        # The next piece holds the switch of a robot whose sliding ended here, as it left the surface.
+        kept = tuple(jnp.where(flag & fe & (te <= tau), he, -1) for fe, te, he in exits)
+        carry = (cut, remaining - h, offset + h, impact, kept, end, signals)
         return carry, (h, start_signals.F, end, surface, jnp.stack(impact))
 
     def piece(carry, j):
         # One predicate for the whole batch; under `vmap` the cond becomes a select and both run.
         return jax.lax.cond((carry[1] > 0.0).any(), run,
-                            lambda carry, _: (carry, (0.0 * carry[1], carry[4], carry[4], jnp.zeros_like(carry[4], bool),
-                                                      jnp.zeros_like(carry[4], bool))),
+                            lambda carry, _: (carry, (0.0 * carry[1], carry[5], carry[5], jnp.zeros_like(carry[5], bool),
+                                                      jnp.zeros_like(carry[5], bool))),
                             carry, j)
 
     signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
-    carry = (rows, remaining, 0.0 * remaining, (no, no), F0, signals0)
-    (new, _, _, _, _, signals), (h, starts, ends, surface, impact) = jax.lax.scan(piece, carry, jnp.arange(PIECES))
+    unheld = jnp.full(y.shape[1:], -1)
+    carry = (rows, remaining, 0.0 * remaining, (no, no), (unheld, unheld), F0, signals0)
+    (new, _, _, _, _, _, signals), (h, starts, ends, surface, impact) = jax.lax.scan(piece, carry, jnp.arange(PIECES))
     return new.array(), signals, Path(h / dt, starts, ends, surface, impact)
 
 
