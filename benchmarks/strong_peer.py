@@ -6,7 +6,8 @@ CPU kernel in numba. It is what an engineer who knows the machine would write in
 
 Both steps are coopjax's, operation for operation (coopjax/integration/filippov.py and
 plain_rk4.py): the sliding-mode step with its located events (an impact, the force reaching F_lim,
-the Kelvin-Voigt force passing 0) in up to three pieces a step, and plain RK4 on the hard switch.
+the Kelvin-Voigt force passing 0, the end of a sliding mode) in up to three pieces a step, and plain
+RK4 on the hard switch.
 The metrics are coopjax's carry metrics over the force's path through each step (min_grip,
 peak_grip, slip, crush, impact, rms_lag) with the same divergence rule. Unilateral contact,
 alpha_b = 1, delta0 = 0; `benchmarks.__main__` checks the peer against coopjax before timing it.
