@@ -58,10 +58,19 @@ def check_trial(command, folder, code, err, took):
     assert not any(".tmp-" in n for n in files), files  # nothing half-written
     if code == 0:  # it finished before the signal
         return "finished"
-    if code == -signal.SIGINT and not err and not files:
-        # Killed by the default action: the signal came before the interpreter had installed its own
-        # handler (its start took the whole delay, on a loaded machine), before coopjax ran at all.
-        return "not started"
+    if code == -signal.SIGINT and not err:
+        # Killed by the default action, silently: the signal came while the interpreter had no handler
+        # of its own, before it installed one (its start took the whole delay, on a loaded machine)
+        # or after it removed it at exit, the work done. A shell reports either as status 130 too.
+        for name in files:  # what is there is whole
+            path = os.path.join(folder, name)
+            if name.endswith(".png"):
+                assert open(path, "rb").read(8) == b"\x89PNG\r\n\x1a\n", name
+            if name.endswith(".json"):
+                json.load(open(path))
+            if name.endswith(".csv"):
+                assert len(pd.read_csv(path)) > 0, name
+        return "not started" if not files else "finished"
     assert code == 130, (code, err[-2000:])
     assert took < 10, took  # the watcher acts at once, even inside XLA
     assert len(lines) == 1 and lines[0].startswith("coopjax: interrupted; ") and "Traceback" not in err, (command, took, err[-2000:])
@@ -101,7 +110,7 @@ def test_ctrl_c_at_random_moments_is_one_truthful_line_exit_130_and_nothing_half
 @pytest.mark.slow
 def test_ctrl_c_at_many_random_moments(tmp_path):
     rng = np.random.default_rng(int(time.time()))
-    delays = [(c, float(rng.uniform(1.0, 25.0))) for _ in range(10) for c in COMMANDS]
+    delays = [(c, float(rng.uniform(1.0, 12.0))) for _ in range(10) for c in COMMANDS]
     outcome = run_trials(tmp_path, delays)
     assert outcome.count("interrupted") >= 20, outcome
 

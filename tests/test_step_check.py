@@ -39,7 +39,7 @@ def test_a_sweep_marks_the_optimised_artefact_and_passes_converged_rows():
     assert cols["status"].tolist() == ["step_artefact", "ok"]
     assert cols["step_error"][0] > 5 and cols["step_error"][1] < 0.2
     assert not cols["finite"][0]
-    # The rows' own answers are kept: the artefact still says it holds with a low peak at this step.
+    # The rows' own answers are kept: the artefact still says it holds with a low lag at this step.
     plain = sweeps.run(sweeps.make_spec("carry", None, {}, {}, 0, table, dt=ARTEFACT_DT))
     for name in ("min_grip", "peak_grip", "rms_lag"):
         np.testing.assert_array_equal(cols[name], plain[name])
