@@ -362,9 +362,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         tbR, taR = fractions(fR[2], fR[3], sn_R, h)
         # A robot sliding at the start slides through the piece, lambda* unclipped (filippov.substep).
         rawL, rawR = raw_of(fL[2], fL[3]), raw_of(fR[2], fR[3])
-        frL = (inL and holdL < 0 and fL[2] - fL[3] > EPS and rawL > Z0 and rawL < ONE and not last
+        frL = (inL and holdL < 0 and rawL > Z0 and rawL < ONE and not last
                and ((tbL < ONE) if sn_L < Z0 else (taL < ONE)))
-        frR = (inR and holdR < 0 and fR[2] - fR[3] > EPS and rawR > Z0 and rawR < ONE and not last
+        frR = (inR and holdR < 0 and rawR > Z0 and rawR < ONE and not last
                and ((tbR < ONE) if sn_R < Z0 else (taR < ONE)))
         # Stage 0 (at the start), then the three others.
         lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL)

@@ -387,7 +387,8 @@ def substep(ps, rows: Rows, clock: Clock, remaining, on, kept, dt, scenario, opt
     part = plan(ps, rows, fs, body, remaining, on, dt, options, last, kept)
     thetas = tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n))
     raw = tuple(sliding_weight(f) for f in fs)
-    free = tuple(f.in_contact & (hold < 0) & (f.sd0 - f.sd1 > EPS) & (r > 0.0) & (r < 1.0) & ~last
+    # 0 < lambda* < 1 only where the two rates differ (`sliding_weight` is 0 or 1 elsewhere).
+    free = tuple(f.in_contact & (hold < 0) & (r > 0.0) & (r < 1.0) & ~last
                  & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
                  for f, r, s_n, hold, (theta_below, theta_above) in zip(fs, raw, sigma_n, part.hold, thetas))
     contact = Contact(part.on, part.off, part.hold, free)
