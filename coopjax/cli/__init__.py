@@ -18,7 +18,7 @@ import errno
 import importlib
 import sys
 
-from coopjax.cli import interrupts
+from coopjax.cli import cache, interrupts
 from coopjax.errors import InputError
 
 EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED = 2, 1, 130
@@ -45,6 +45,7 @@ def build_parser():
         description="Differentiable simulator of two cooperating space robots with virtual-foundation force control "
         "(Pathak et al.). The equations: docs/model.md in the project; tuning: docs/tuning.md; linear analysis: "
         "docs/analysis.md.",
+        epilog=cache.describe(),
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
@@ -61,6 +62,7 @@ def main(argv=None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
+        cache.enable()
         return args.run(args)
     except InputError as error:
         from coopjax.cli.common import message
