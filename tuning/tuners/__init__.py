@@ -19,6 +19,6 @@ it is told: that is what makes resume-by-replay bit-identical.
 """
 
 from tuning.tuners.base import TUNERS, Evaluation, Query, Tuner, get, register
-from tuning.tuners import ablation, adam, cmaes, random_search, screen_slp  # noqa: E402,F401  (the built-in tuners register themselves)
+from tuning.tuners import ablation, adam, cma_slp, cmaes, random_search, screen_slp  # noqa: E402,F401  (the built-in tuners register themselves)
 
 __all__ = ["Evaluation", "Query", "TUNERS", "Tuner", "get", "register"]

@@ -1,0 +1,162 @@
+"""CMA-ES with its best candidate polished by exact-Jacobian linear programs, and injected back.
+
+A population sees past the cliffs of this problem (the grip lost abruptly at heavy masses, impacts
+in narrow bands of mass) but closes in on an optimum slowly, where the worst masses and the grip
+constraint are active at once. A trust-region step on the worst case's epigraph (`screen_slp.program`,
+with forward-mode Jacobians of every per-mass output) does that last part in a few iterations. So:
+
+1. `every` generations of CMA-ES (the `CMAES` tuner: IPOP, cma's augmented Lagrangian, fresh masses
+   each generation);
+2. `polish` Sl1LP iterations from CMA-ES's best holding candidate (or from the last polished point,
+   while CMA-ES has found nothing better), on the training grid of masses, with `radii` trial steps
+   per iteration in one batch;
+3. each accepted polished point is injected into CMA-ES's next population (`cma`'s `inject`), so the
+   search distribution moves towards it; then back to 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from tuning.problem import grid, log_bounds
+from tuning.tuners.base import Query, Tuner, register
+from tuning.tuners.cmaes import CMAES
+from tuning.tuners.screen_slp import SHORTEST, ScreenSLP, _outputs, merit, program
+
+
+@dataclasses.dataclass
+class State:
+    cma: object  # the CMAES tuner's state
+    phase: str  # "cma", "jacobian" or "trials"
+    masses: np.ndarray  # the polish's training grid
+    problem: object
+    generations: int = 0  # since the last polish
+    theta: np.ndarray | None = None  # the polished iterate
+    origin: np.ndarray | None = None  # the CMA-ES candidate the current polish started from
+    radius: float = 0.0
+    current: dict | None = None
+    trials: np.ndarray | None = None  # (R, n)
+    predicted: np.ndarray | None = None  # (R,)
+    iterations: int = 0  # of the current polish
+    best: tuple = (False, np.inf, None)  # (holds, phi, theta) of the best polished point
+    history: dict = dataclasses.field(default_factory=dict)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class CMAESPolished(Tuner):
+    name = "CMA-ES+SLP"
+    description = ("CMA-ES whose best candidate is polished by trust-region linear programs with exact Jacobians, and "
+                   "injected back into its population")
+    uses_gradient = True
+
+    cma: CMAES = CMAES()
+    every: int = 4  # CMA-ES generations between polishes
+    polish: int = 2  # Sl1LP iterations (Jacobians) per polish
+    # The local step, as in screen-SLP.
+    radius: float = 0.25
+    radii: int = 4
+    max_radius: float = 1.0
+    penalty: float = ScreenSLP.penalty
+    swi_margin: float = ScreenSLP.swi_margin
+    swi_penalty: float = ScreenSLP.swi_penalty
+    accept: float = ScreenSLP.accept
+
+    def _phi(self, out, problem):
+        return merit(out, problem.w_lag, self.penalty, self.swi_penalty, self.swi_margin)
+
+    def init(self, problem, starts, seed):
+        history = {k: [] for k in ("step", "f", "holds", "shortfall", "phi", "radius", "margin", "accepted")}
+        return State(self.cma.init(problem, starts, seed), "cma", grid(problem.training_range, problem.n_masses),
+                     problem, history=history)
+
+    def ask(self, state):
+        if state.phase == "cma":
+            return self.cma.ask(state.cma)
+        if state.phase == "jacobian":
+            return Query(state.theta[None].copy(), state.masses, "jacobian")
+        return Query(state.trials.copy(), state.masses)
+
+    def tell(self, state, query, ev):
+        return {"cma": self._tell_cma, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
+            state, query, ev)
+
+    def _tell_cma(self, state, query, ev):
+        state.cma = self.cma.tell(state.cma, query, ev)
+        state.generations += 1
+        best = state.cma.best
+        if state.generations >= self.every and best and best[0]:
+            state.generations = 0
+            if state.origin is None or not np.array_equal(best[2], state.origin):
+                state.origin = np.asarray(best[2]).copy()  # a new best from CMA-ES: polish it
+                state.theta, state.radius = state.origin.copy(), self.radius
+            if state.radius > 0:
+                state.iterations, state.phase = 0, "jacobian"
+        return state
+
+    def _tell_jacobian(self, state, query, ev):
+        out = _outputs(ev)
+        ok = bool(ev.finite[0]) and all(np.isfinite(v).all() for v in out.values())
+        phi = float(self._phi(out, state.problem)[0]) if ok else np.inf
+        self._keep(state, bool(ev.holds[0]), phi, state.theta)
+        for key, value in (("step", len(state.history["step"])), ("f", [float(ev.f[0])]), ("holds", [bool(ev.holds[0])]),
+                           ("shortfall", [float(ev.c.max())]), ("phi", [phi]), ("radius", [state.radius]),
+                           ("margin", [float(ev.min_swi.min())])):
+            state.history[key].append(value)
+        if not ok:
+            state.radius, state.phase = 0.0, "cma"
+            return state
+        here = {k: v[0] for k, v in out.items()} | {"phi": phi}
+        state.current = here
+        lo, hi = log_bounds(state.problem.names)
+        state.trials = np.repeat(state.theta[None], self.radii, 0)
+        state.predicted = np.zeros(self.radii)
+        for j in range(self.radii):
+            d, fall = program(state.theta, here, state.radius / 2**j, lo, hi, state.problem.w_lag, self.penalty,
+                              self.swi_penalty, self.swi_margin)
+            if fall <= 1e-9 * max(1.0, abs(phi)):
+                break
+            state.trials[j], state.predicted[j] = np.clip(state.theta + d, lo, hi), fall
+        if state.predicted[0] <= 0:  # converged: wait for a better CMA-ES candidate
+            state.radius, state.phase = 0.0, "cma"
+        else:
+            state.phase = "trials"
+        return state
+
+    def _tell_trials(self, state, query, ev):
+        out = _outputs(ev)
+        ok = ev.finite & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
+        phi = np.where(ok, self._phi(out, state.problem), np.inf)
+        ratio = (state.current["phi"] - phi) / np.where(state.predicted > 0, state.predicted, 1.0)
+        good = ok & (state.predicted > 0) & (ratio >= self.accept)
+        radii = state.radius / 2.0 ** np.arange(self.radii)
+        state.iterations += 1
+        state.history["accepted"].append([bool(good.any())])
+        if good.any():
+            j = int(np.argmin(np.where(good, phi, np.inf)))
+            length = np.abs(state.trials[j] - state.theta).max()
+            grow = j == 0 and ratio[j] > 0.75 and length >= 0.99 * radii[0]
+            state.theta = state.trials[j].copy()
+            state.radius = min(2 * radii[j], self.max_radius) if grow else radii[j]
+            self._keep(state, bool(ev.holds[j]), float(phi[j]), state.theta)
+            state.cma.es.inject([state.theta], force=True)  # CMA-ES's next population starts from it
+            state.phase = "jacobian" if state.iterations < self.polish else "cma"
+        else:
+            state.radius = radii[-1] / 2 if radii[-1] / 2 >= SHORTEST else 0.0
+            state.phase = "jacobian" if state.iterations < self.polish and state.radius > 0 else "cma"
+        return state
+
+    @staticmethod
+    def _keep(state, holds, phi, theta):
+        if np.isfinite(phi) and (holds, -phi) > (state.best[0], -state.best[1]):
+            state.best = (holds, phi, np.asarray(theta).copy())
+
+    def candidates(self, state):
+        polished = [state.best[2]] if state.best[2] is not None else []
+        return polished + self.cma.candidates(state.cma)
+
+    def plan_text(self, n_params, starts):
+        return (f"CMA-ES from {starts} starts; every {self.every} generations its best polished by {self.polish} "
+                f"Jacobian steps (forward mode, {n_params} tangents) and injected back")
