@@ -29,14 +29,15 @@ def test_a_folder_that_cannot_hold_the_cache_is_one_line_and_exit_2(fresh_dir, c
 
 
 def test_a_second_run_loads_what_the_first_compiled(tmp_path):
-    """In real processes (JAX reads its cache settings once per process): the first run fills the
-    folder, and the same run again finds every program there and adds nothing."""
+    """In real processes (JAX reads its cache settings once per process): the first run fills this
+    machine's subfolder, and the same run again finds every program there and adds nothing."""
     folder = tmp_path / "cache"
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"} | {cache.ENV: str(folder)}
     command = [sys.executable, "-m", "coopjax.cli", "simulate", "--scenario", "paper", "--out", str(tmp_path / "r.csv")]
     runs = []
     for _ in range(2):
         subprocess.run(command, env=env, check=True, capture_output=True)
-        runs.append(sorted(os.listdir(folder)))
+        runs.append(sorted(os.path.relpath(os.path.join(d, f), folder) for d, _, files in os.walk(folder) for f in files))
     assert runs[0], "nothing was cached"
+    assert {os.path.dirname(f) for f in runs[0]} == {cache.machine_tag()}  # one subfolder, this machine's
     assert runs[1] == runs[0]
