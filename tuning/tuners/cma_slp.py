@@ -23,7 +23,7 @@ import numpy as np
 from tuning.problem import grid, log_bounds
 from tuning.tuners.base import Query, Tuner, register
 from tuning.tuners.cmaes import CMAES
-from tuning.tuners.screen_slp import SHORTEST, ScreenSLP, _outputs, merit, program
+from tuning.tuners.screen_slp import ScreenSLP, _outputs, merit, trial_steps, trust_update
 
 
 @dataclasses.dataclass
@@ -111,14 +111,7 @@ class CMAESPolished(Tuner):
         here = {k: v[0] for k, v in out.items()} | {"phi": phi}
         state.current = here
         lo, hi = log_bounds(state.problem.names)
-        state.trials = np.repeat(state.theta[None], self.radii, 0)
-        state.predicted = np.zeros(self.radii)
-        for j in range(self.radii):
-            d, fall = program(state.theta, here, state.radius / 2**j, lo, hi, state.problem.w_lag, self.penalty,
-                              self.swi_penalty, self.swi_margin)
-            if fall <= 1e-9 * max(1.0, abs(phi)):
-                break
-            state.trials[j], state.predicted[j] = np.clip(state.theta + d, lo, hi), fall
+        state.trials, state.predicted = trial_steps(self, state.theta, here, state.radius, lo, hi, state.problem.w_lag)
         if state.predicted[0] <= 0:  # converged: wait for a better CMA-ES candidate
             state.radius, state.phase = 0.0, "cma"
         else:
@@ -129,22 +122,16 @@ class CMAESPolished(Tuner):
         out = _outputs(ev)
         ok = ev.finite & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
         phi = np.where(ok, self._phi(out, state.problem), np.inf)
-        ratio = (state.current["phi"] - phi) / np.where(state.predicted > 0, state.predicted, 1.0)
-        good = ok & (state.predicted > 0) & (ratio >= self.accept)
-        radii = state.radius / 2.0 ** np.arange(self.radii)
+        j, state.radius = trust_update(self, state.theta, state.radius, state.trials, state.predicted,
+                                       state.current["phi"], phi, ok)
         state.iterations += 1
-        state.history["accepted"].append([bool(good.any())])
-        if good.any():
-            j = int(np.argmin(np.where(good, phi, np.inf)))
-            length = np.abs(state.trials[j] - state.theta).max()
-            grow = j == 0 and ratio[j] > 0.75 and length >= 0.99 * radii[0]
+        state.history["accepted"].append([j is not None])
+        if j is not None:
             state.theta = state.trials[j].copy()
-            state.radius = min(2 * radii[j], self.max_radius) if grow else radii[j]
             self._keep(state, bool(ev.holds[j]), float(phi[j]), state.theta)
             state.cma.es.inject([state.theta], force=True)  # CMA-ES's next population starts from it
             state.phase = "jacobian" if state.iterations < self.polish else "cma"
         else:
-            state.radius = radii[-1] / 2 if radii[-1] / 2 >= SHORTEST else 0.0
             state.phase = "jacobian" if state.iterations < self.polish and state.radius > 0 else "cma"
         return state
 

@@ -103,6 +103,35 @@ def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_m
     return solution.x[:n], float(out["phi"] - solution.fun)
 
 
+def trial_steps(tuner, theta, here: dict, radius, lo, hi, w_lag):
+    """One point's trials: the programs' steps at radius, radius / 2, ... (`tuner.radii` of them),
+    with their predicted falls of phi; past the first radius whose program promises nothing, the
+    trials stay at theta with a predicted fall of 0. `tuner` carries the merit's settings."""
+    trials, predicted = np.repeat(theta[None], tuner.radii, 0), np.zeros(tuner.radii)
+    for j in range(tuner.radii):
+        d, fall = program(theta, here, radius / 2**j, lo, hi, w_lag, tuner.penalty, tuner.swi_penalty, tuner.swi_margin)
+        if fall <= 1e-9 * max(1.0, abs(here["phi"])):  # nothing left to gain in the model
+            break
+        trials[j], predicted[j] = np.clip(theta + d, lo, hi), fall
+    return trials, predicted
+
+
+def trust_update(tuner, theta, radius, trials, predicted, phi_now, phi, ok):
+    """The ratio test on one point's evaluated trials: (index of the trial taken or None, new radius).
+
+    The best trial whose fall is at least `tuner.accept` of its prediction is taken; the radius
+    doubles (up to `tuner.max_radius`) after a full step that matched its prediction, and drops
+    below the smallest radius tried when none is taken (0 once below SHORTEST: converged)."""
+    ratio = (phi_now - phi) / np.where(predicted > 0, predicted, 1.0)
+    good = ok & (predicted > 0) & (ratio >= tuner.accept)
+    radii = radius / 2.0 ** np.arange(len(trials))
+    if not good.any():
+        return None, (radii[-1] / 2 if radii[-1] / 2 >= SHORTEST else 0.0)
+    j = int(np.argmin(np.where(good, phi, np.inf)))
+    grow = j == 0 and ratio[j] > 0.75 and np.abs(trials[j] - theta).max() >= 0.99 * radii[0]
+    return j, (min(2 * radii[j], tuner.max_radius) if grow else radii[j])
+
+
 def diverse_best(thetas, phi, count, distance):
     """Indices of up to `count` finite-phi points, best first, no two within `distance` (max norm)."""
     chosen = []
@@ -304,12 +333,8 @@ class ScreenSLP(Tuner):
         cur = state.current
         for k in np.flatnonzero((state.radius > 0) & ~state.pending):
             here = {key: value[k] for key, value in cur.items()}
-            for j in range(self.radii):
-                d, fall = program(state.theta[k], here, state.radius[k] / 2**j, lo, hi, state.problem.w_lag,
-                                  self.penalty, self.swi_penalty, self.swi_margin)
-                if fall <= 1e-9 * max(1.0, abs(cur["phi"][k])):  # nothing left to gain in the model
-                    break
-                state.trials[k, j], state.predicted[k, j] = np.clip(state.theta[k] + d, lo, hi), fall
+            state.trials[k], state.predicted[k] = trial_steps(self, state.theta[k], here, state.radius[k], lo, hi,
+                                                              state.problem.w_lag)
             if state.predicted[k, 0] <= 0:  # converged
                 state.radius[k] = 0.0
         for k in np.flatnonzero(state.radius <= 0):  # a converged (or dead) lane takes the screen's next point
@@ -339,18 +364,11 @@ class ScreenSLP(Tuner):
             for j in range(R):
                 if state.predicted[k, j] > 0:
                     self._keep_best(state, k, holds[k, j], phi[k, j], state.trials[k, j])
-            ratio = (state.current["phi"][k] - phi[k]) / np.where(state.predicted[k] > 0, state.predicted[k], 1.0)
-            good = ok[k] & (state.predicted[k] > 0) & (ratio >= self.accept)
-            radii = state.radius[k] / 2.0 ** np.arange(R)
-            if good.any():
-                j = int(np.argmin(np.where(good, phi[k], np.inf)))
-                length = np.abs(state.trials[k, j] - state.theta[k]).max()
-                grow = j == 0 and ratio[j] > 0.75 and length >= 0.99 * radii[0]
+            j, state.radius[k] = trust_update(self, state.theta[k], state.radius[k], state.trials[k],
+                                              state.predicted[k], state.current["phi"][k], phi[k], ok[k])
+            if j is not None:
                 state.theta[k] = state.trials[k, j]
-                state.radius[k] = min(2 * radii[j], self.max_radius) if grow else radii[j]
                 accepted[k] = True
-            else:  # below the smallest radius tried
-                state.radius[k] = radii[-1] / 2 if radii[-1] / 2 >= SHORTEST else 0.0
         state.history["accepted"].append(accepted.tolist())
         state.pending = accepted
         if accepted.any():
