@@ -10,9 +10,12 @@ masses in one batch, every local device. Timed after compiling, median of `--rep
 - central differences: the same Jacobian from 2n + 1 primal runs of the batch in one call (what the
   ablation screen-SLP/FD asks for);
 - gradient, reverse mode: of one scalar per parameter set (the gradient tuner's augmented
-  Lagrangian), checkpointed per step.
+  Lagrangian), under each memory policy of `coopjax.simulate`'s `checkpoint`: every step
+  rematerialised (the default), segments of sqrt(n) steps checkpointed with every step inside
+  rematerialised ("nested"), and segments only, their steps' intermediates stored ("segment").
 
-Each is reported in seconds and in units of the values call. Writes benchmarks/derivative_cost.json.
+Each is reported in seconds, in units of the values call, and with the working memory XLA allots
+the compiled program. Writes benchmarks/derivative_cost.json.
 """
 
 from __future__ import annotations
@@ -54,32 +57,39 @@ def main(argv=None):
     n, K = len(names), args.lanes
     shifts = np.concatenate([np.zeros((1, n)), 1e-3 * np.eye(n), -1e-3 * np.eye(n)])
     mult = constrained.init((K, problem.n_masses), 10.0)
+    gradient = Query(thetas, masses, "gradient", "reverse", mult)
     queries = {
-        "values": Query(thetas, masses),
-        "jacobian (forward, n tangents vmapped)": Query(thetas, masses, "jacobian"),
-        f"central differences ({2 * n + 1} runs)": Query((thetas[:, None] + shifts[None]).reshape(-1, n), masses),
-        "gradient (reverse, of one scalar)": Query(thetas, masses, "gradient", "reverse", mult),
+        "values": (Query(thetas, masses), True),
+        "jacobian (forward, n tangents vmapped)": (Query(thetas, masses, "jacobian"), True),
+        f"central differences ({2 * n + 1} runs)": (Query((thetas[:, None] + shifts[None]).reshape(-1, n), masses), True),
+        "gradient (reverse, every step remat.)": (gradient, True),
+        "gradient (reverse, nested segments)": (gradient, "nested"),
+        "gradient (reverse, segments only)": (gradient, "segment"),
     }
-    evaluator = Evaluator(problem, base, AdamAL.scalar)
     rows = {}
-    for label, query in queries.items():
+    for label, (query, checkpoint) in queries.items():
+        evaluator = Evaluator(problem, base, AdamAL.scalar, checkpoint)
         start = time.perf_counter()
         evaluator.warm_up(query)
         compile_s = time.perf_counter() - start
+        (program,) = evaluator.compiled.values()
+        memory = program.memory_analysis()
         times = []
         for _ in range(args.repeats):
             start = time.perf_counter()
             evaluator(query)
             times.append(time.perf_counter() - start)
-        rows[label] = {"median_s": statistics.median(times), "compile_s": compile_s}
+        rows[label] = {"median_s": statistics.median(times), "compile_s": compile_s,
+                       "temp_MB": memory.temp_size_in_bytes / 1e6 if memory is not None else float("nan")}
     unit = rows["values"]["median_s"]
     print(f"jax {jax.__version__}, {jax.device_count()} devices; {n} parameters, {K} sets x {len(masses)} masses, "
           f"dt = {problem.dt:g} s, median of {args.repeats}")
-    print(f"{'evaluation':<40} {'median [s]':>11} {'primal runs':>12} {'per parameter':>14} {'compile [s]':>12}")
+    print(f"{'evaluation':<40} {'median [s]':>11} {'primal runs':>12} {'per parameter':>14} {'compile [s]':>12} "
+          f"{'memory [MB]':>12}")
     for label, row in rows.items():
         row["primal_runs"] = row["median_s"] / unit
         print(f"{label:<40} {row['median_s']:>11.3f} {row['primal_runs']:>12.1f} {row['primal_runs'] / n:>14.2f} "
-              f"{row['compile_s']:>12.1f}")
+              f"{row['compile_s']:>12.1f} {row['temp_MB']:>12.1f}")
     with open(args.out, "w") as f:
         json.dump({"jax": jax.__version__, "devices": jax.device_count(), "params": n, "lanes": K,
                    "masses": len(masses), "dt": problem.dt, "rows": rows}, f, indent=1)

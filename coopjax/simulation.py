@@ -73,7 +73,8 @@ def simulate(params: Params, config: Config | str = "carry", *, every: int | Non
       config: a `Config`, or a scenario name ("paper", "carry", or any registered one).
       every: record the state and signals every this many steps; None keeps only metrics.
       checkpoint: under reverse-mode differentiation, True rematerialises each step; "nested" also
-        checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n)); False stores everything.
+        checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n)); "segment" checkpoints the
+        blocks only and stores the steps inside one; False stores everything.
       check_dt: refuse a step beyond the stability limit of the linearised loop.
       **settings: any `Config` field, e.g. `switch="smooth"`, `integrator="rk4"`, `dt=2e-3`, `T=1.0`.
 
@@ -84,8 +85,8 @@ def simulate(params: Params, config: Config | str = "carry", *, every: int | Non
         raise InputError(f"params must be a Params from make_params, got {type(params).__name__}", "params")
     config = Config.of(config, **settings).validate()
     check_every(config, every)
-    if checkpoint not in (True, False, "nested"):
-        raise InputError(f"checkpoint is {checkpoint!r}: choose True, False or 'nested'", "checkpoint")
+    if checkpoint not in (True, False, "nested", "segment"):
+        raise InputError(f"checkpoint is {checkpoint!r}: choose True, False, 'nested' or 'segment'", "checkpoint")
     if isinstance(unroll, bool) or not isinstance(unroll, (int, np.integer)) or unroll < 1:
         raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
     params = config.cast(params)

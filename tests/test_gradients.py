@@ -84,7 +84,7 @@ def test_plain_rk4_finite_differences_of_the_hard_model_are_noise():
 
 
 @pytest.mark.slow
-def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
+def test_block_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
     from coopjax.simulation import Run
 
     def compiled(checkpoint, T):
@@ -98,12 +98,14 @@ def test_nested_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly()
     try:
         # Horizons that both reach into the grip window: before it the loss does not depend on K_GP,
         # and XLA removes the whole backward pass.
-        programs = {(c, T): compiled(c, T) for c in (True, "nested") for T in (1.0, 4.0)}
+        programs = {(c, T): compiled(c, T) for c in (True, "nested", "segment") for T in (1.0, 4.0)}
     finally:
         jax.config.update("jax_enable_compilation_cache", cached)
     memory = {key: program.memory_analysis().temp_size_in_bytes for key, program in programs.items()}
     assert 3.5 < memory[True, 4.0] / memory[True, 1.0] < 4.5  # one carry per step: linear
-    assert memory["nested", 4.0] / memory["nested", 1.0] < 2.5  # sqrt(4) = 2
+    for blocks in ("nested", "segment"):
+        assert memory[blocks, 4.0] / memory[blocks, 1.0] < 2.5, blocks  # sqrt(4) = 2
     assert memory["nested", 4.0] < memory[True, 4.0] / 5
-    step, nested = (float(programs[c, 4.0](0.5)) for c in (True, "nested"))
+    step, nested, segment = (float(programs[c, 4.0](0.5)) for c in (True, "nested", "segment"))
     assert nested == pytest.approx(step, rel=1e-5)  # the same gradient, up to the order of operations
+    assert segment == pytest.approx(step, rel=1e-5)

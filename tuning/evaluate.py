@@ -20,8 +20,9 @@ from tuning.tuners import Evaluation, Query
 
 
 @functools.lru_cache(maxsize=32)
-def _function(problem: Problem, derivative, mode, scalar):
-    """The jitted function of one kind of evaluation: (thetas, masses, base, weights) -> outputs."""
+def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
+    """The jitted function of one kind of evaluation: (thetas, masses, base, weights) -> outputs.
+    `checkpoint` (the reverse-mode memory policy of `coopjax.simulate`) matters to gradients only."""
 
     def outputs(thetas, masses, base):
         t = terms(thetas, base, problem, masses)
@@ -46,7 +47,7 @@ def _function(problem: Problem, derivative, mode, scalar):
         return jax.jit(jacobian)
 
     def value(th, masses, base, weights):
-        t = terms(th, base, problem, masses)
+        t = terms(th, base, problem, masses, checkpoint)
         return scalar(problem, t.f, t.c, weights), t
 
     def pack(t, L, grad):
@@ -79,8 +80,8 @@ def _function(problem: Problem, derivative, mode, scalar):
 class Evaluator:
     """Runs queries for one problem and base; counts trajectories and keeps compile time apart."""
 
-    def __init__(self, problem: Problem, base, scalar=None):
-        self.problem, self.base, self.scalar = problem, base, scalar
+    def __init__(self, problem: Problem, base, scalar=None, checkpoint: bool | str = True):
+        self.problem, self.base, self.scalar, self.checkpoint = problem, base, scalar, checkpoint
         self.F_lim = float(np.asarray(base.F_lim).min())
         self.compiled: dict = {}
         self.compile_s = 0.0
@@ -90,7 +91,7 @@ class Evaluator:
         key = (query.derivative, query.mode, np.shape(query.thetas), np.shape(query.masses))
         if key not in self.compiled:
             fn = _function(self.problem, query.derivative, query.mode if query.derivative == "gradient" else None,
-                           self.scalar if query.derivative == "gradient" else None)
+                           self.scalar if query.derivative == "gradient" else None, self.checkpoint)
             start = time.perf_counter()
             self.compiled[key] = fn.lower(*args).compile()
             self.compile_s += time.perf_counter() - start

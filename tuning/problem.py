@@ -267,13 +267,14 @@ def deficit(slip):
     return jnp.sqrt(slip + EPS_DEFICIT**2) - EPS_DEFICIT
 
 
-def terms(theta, base: Params, problem: Problem, masses) -> Terms:
+def terms(theta, base: Params, problem: Problem, masses, checkpoint: bool | str = True) -> Terms:
     """Objective and constraints of every start at every mass; theta is (K, n) log-values, masses
-    (M,). Pure; jit it outside. The batch is split over every local device (`devices.run`)."""
+    (M,). Pure; jit it outside. The batch is split over every local device (`devices.run`).
+    `checkpoint` is the reverse-mode memory policy of `coopjax.simulate`."""
     masses = jnp.asarray(masses, theta.dtype)
     K, M = theta.shape[0], masses.shape[0]
     params = params_for(base, problem.names, theta, masses, problem)
-    m = devices.run(metrics_of(problem.config), params, shard_traced=True)
+    m = devices.run(metrics_of(problem.config, checkpoint), params, shard_traced=True)
     peak = m.peak_grip.reshape(K, M)
     lag_mm = 1e3 * m.rms_lag.reshape(K, M)
     f = smooth_max(peak, problem) + smooth_max(problem.w_lag * lag_mm, problem)

@@ -88,7 +88,9 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
     `every` records the state and signals every this many steps (None: metrics only). Under
     reverse-mode differentiation, `checkpoint=True` rematerialises each step (memory grows with the
     number of steps, one carry each); "nested" also checkpoints blocks of sqrt(n) steps, so memory
-    grows with sqrt(n) at the cost of one more forward pass; False stores every intermediate.
+    grows with sqrt(n) at the cost of one more forward pass; "segment" checkpoints only the blocks
+    and keeps every intermediate inside one (sqrt(n) steps of them), which on CPU is the slowest
+    (benchmarks/derivative_cost.py); False stores every intermediate.
     """
     scenario = get(settings.scenario)
     options, dt, n = settings.options, settings.dt, settings.n_steps
@@ -114,7 +116,7 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
         y = jnp.where(diverged[None], y, y_new)
         return (y, acc, diverged, t_div), None
 
-    if checkpoint:
+    if checkpoint in (True, "nested"):
         advance = jax.checkpoint(advance)
 
     def steps(carry, k0, count):
@@ -122,7 +124,7 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
         return jax.lax.scan(advance, carry, ks, unroll=min(unroll, max(count, 1)))[0]
 
     def run(carry, k0, count):
-        if checkpoint != "nested" or count < 4:
+        if checkpoint not in ("nested", "segment") or count < 4:
             return steps(carry, k0, count)
         size = math.isqrt(count)
         n_blocks, tail = divmod(count, size)
