@@ -4,7 +4,7 @@ Determinism is by construction:
 - Sample i's random draws depend only on (seed, parameter name, i), through a counter-based hash.
   So the chunk size, device count and process count cannot change them.
 - Every device always runs the same per-device block of `block` samples (padded if need be), and
-  `block` depends only on the sweep size. XLA therefore compiles the same per-device program
+  `block` depends only on the sweep size (or is fixed by the caller). XLA therefore compiles the same per-device program
   whatever the chunking, and rounding cannot differ between layouts. The closed loop can amplify
   rounding (docs/model.md, "Step size"), so that matters.
 
@@ -271,14 +271,16 @@ def block_size(n: int) -> int:
     return int(min(devices.BLOCK, 2 ** math.ceil(math.log2(max(n, 8)))))
 
 
-def evaluate(spec: SweepSpec, values: dict[str, np.ndarray]) -> np.ndarray:
+def evaluate(spec: SweepSpec, values: dict[str, np.ndarray], block: int | None = None) -> np.ndarray:
     """The result columns (`spec.columns`, as float64) of the given parameter sets: the metrics, the
-    divergence flags, the step check of `simulate` per sample, and the status."""
+    divergence flags, the step check of `simulate` per sample, and the status. `block`: samples per
+    device per call (None: `block_size` of the sweep)."""
+    block = block or block_size(spec.n)
     config = spec.config
     params = config.cast(make_params(**dict(spec.fixed), **values))
     limit, growth = stability.stable_dt(params, config)
     limit = _significant(limit, 6)
-    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block_size(spec.n))
+    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block)
     m = np.stack([np.asarray(x, np.float64) for x in jax.device_get(list(metrics))], axis=1)
     names = metrics._fields
     finite = m[:, names.index("finite")] > 0.5
@@ -287,7 +289,7 @@ def evaluate(spec: SweepSpec, values: dict[str, np.ndarray]) -> np.ndarray:
     status = np.select([growth > 0, config.dt > limit, ~finite], [2, 3, 1], 0)
     extra = []
     if spec.check_step:
-        fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block_size(spec.n))
+        fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block)
         error = step_check.step_error({n: m[:, names.index(n)] for n in step_check.METRICS},
                                       {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS})
         status = np.where((status == 0) & step_check.artefacts(error), STATUSES.index("step_artefact"), status)
@@ -296,9 +298,12 @@ def evaluate(spec: SweepSpec, values: dict[str, np.ndarray]) -> np.ndarray:
     return np.column_stack([m, limit, status] + extra)
 
 
-def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False, progress: bool = False):
+def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False, progress: bool = False,
+        block: int | None = None):
     """Run a sweep and return its table as columns (sample, varied parameters, results).
 
+    `block` fixes the samples per device per call (None: `block_size` of the sweep), so that sweeps
+    of different sizes share one compiled program.
     With `parts`, each finished chunk is saved there atomically, and `resume=True` skips those
     already saved. Under `jax.distributed`, chunks are shared among processes and process 0 returns
     the whole table (others return it too, except after a resume, when they return None).
@@ -332,7 +337,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
         local = np.full((chunk, width), np.nan)
         if mine is not None:
             rows = slice(mine * chunk, min((mine + 1) * chunk, spec.n))
-            local[: rows.stop - rows.start] = evaluate(spec, {k: v[rows] for k, v in values.items()})
+            local[: rows.stop - rows.start] = evaluate(spec, {k: v[rows] for k, v in values.items()}, block)
         if n_proc > 1:
             with jax.enable_x64(True):  # the table is float64 whatever the runs are
                 gathered = np.asarray(multihost_utils.process_allgather(local, tiled=False), np.float64)

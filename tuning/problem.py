@@ -52,6 +52,9 @@ HOLD_TOLERANCE = 0.01  # N
 # Table 1's gains (about 4e-3 s), which shrinks as K_GP grows.
 TRAIN_DT = INTEGRATORS["filippov"].converged_dt[("carry", "hard")]
 JUDGE_DT = 1e-3
+# Runs per device per call of every judging: one block for all sizes, so that the selection, the
+# verdict and the race share one compiled program per step (a new block size costs 8 s of compiling).
+JUDGE_BLOCK = 128
 SURROGATE_DT = 2.5e-4  # s: plain RK4 on the smooth surrogates (docs/tuning.md)
 SWITCHES = ("hard", "blend", "smooth", "straight_through")
 AGGREGATES = ("smoothmax", "cvar", "max", "mean")
@@ -336,7 +339,7 @@ def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Param
     table = {n: np.repeat([float(g[n]) for g in sets], M) for n in sets[0]}
     table["M_b"] = np.tile(masses, G)
     spec = sweeps.make_spec(judge_config(dt), None, {}, fixed, 0, table, check_step=check_step)
-    columns = sweeps.run(spec, chunk=max(G * M, 1), progress=progress)
+    columns = sweeps.run(spec, chunk=max(G * M, 1), progress=progress, block=JUDGE_BLOCK)
     F_lim = float(np.asarray((base or make_params()).F_lim).min())
     verdicts = [_verdict({k: columns[k][g * M:(g + 1) * M] for k in spec.columns}, w_lag, F_lim) for g in range(G)]
     return verdicts if many else verdicts[0]
