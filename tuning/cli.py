@@ -33,7 +33,7 @@ from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, JUDGE_DT, SURROGATE_DT, 
 from tuning.tuners import TUNERS
 from tuning.tuners.adam import MODES, AdamAL
 from tuning.tuners.cmaes import CMAES
-from tuning.tuners.screen_slp import ScreenSLP
+from tuning.tuners.screen_slp import SEARCHES, ScreenSLP
 
 NAME = "tune"
 DEFAULT_OUT = "tuned.json"
@@ -45,7 +45,7 @@ METHODS = {ScreenSLP.name: ScreenSLP, AdamAL.name: AdamAL}  # the tuners a plain
 DEFAULT_METHOD = ScreenSLP.name
 # The gradient tuner's flags: None (unset) takes its defaults; another method refuses them.
 ADAM_FLAGS = {"mode": "--mode", "lr": "--lr", "rho": "--rho", "al_every": "--al-every"}
-SCREEN_FLAGS = {"screen": "--screen", "local": "--local"}
+SCREEN_FLAGS = {"screen": "--screen", "local": "--local", "search": "--search"}
 
 
 def add_parser(sub):
@@ -54,7 +54,7 @@ def add_parser(sub):
         NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
         description="Tune controller parameters on the carry scenario, on the hard switch under the sliding-mode "
         "integrator: minimise worst-case peak grip force + w_lag x worst-case RMS lag, with the grip holding at every "
-        "training mass. The default method (screen-SLP) screens Sobol points in one batch, then runs trust-region "
+        "training mass. The default method (screen-SLP) screens hundreds of points in batches (CMA-ES generations), then runs trust-region "
         "linear programs on the worst case from the best of them, with exact Jacobians; --method gradient runs Adam "
         "on an augmented Lagrangian. The result is judged with the hard model at --judge-dt on held-out masses. "
         "Writes OUT (json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
@@ -76,8 +76,10 @@ def add_parser(sub):
     p.add_argument("--starts", type=int, default=STARTS, help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)")
     p.add_argument("--steps", type=int, default=None, help=f"screen-SLP: Jacobian steps of the local solves (default "
                    f"{sl.steps}); gradient: optimiser steps (default {d.steps})")
-    p.add_argument("--screen", type=int, default=None, help=f"screen-SLP: Sobol points screened in the box x/÷ e^SPREAD "
-                   f"around the first start (default {sl.screen})")
+    p.add_argument("--screen", type=int, default=None, help=f"screen-SLP: points screened in the box x/÷ e^SPREAD "
+                   f"around the first start, besides the starts (default {sl.screen})")
+    p.add_argument("--search", default=None, help="screen-SLP: the screen's points after its first "
+                   f"batch: CMA-ES generations (cma) or Sobol points (sobol) (default {sl.search})")
     p.add_argument("--local", type=int, default=None, help=f"screen-SLP: local solves run side by side (default {sl.local})")
     p.add_argument("--mode", default=None, help="gradient: forward, reverse, or auto: forward up to 4 parameters, reverse above (default auto)")
     p.add_argument("--lr", type=float, default=None, help=f"gradient: peak learning rate, log units (default {d.learning_rate:g})")
@@ -145,6 +147,8 @@ class Plan:
                             ("--local", args.local)):
             if value is not None and value < 1:
                 raise BadInput(f"{flag} is {value}: it must be a whole number, at least 1")
+        if args.search is not None and args.search not in SEARCHES:
+            raise BadInput(f"--search must be one of {', '.join(SEARCHES)}, not {args.search!r}")
         if args.screen is not None and args.screen < 0:
             raise BadInput(f"--screen is {args.screen}: it must be 0 or more")
         if args.seed < 0:
@@ -219,7 +223,8 @@ def make_tuner(args):
     given = lambda **kw: {k: v for k, v in kw.items() if v is not None}
     if args.method == AdamAL.name:
         return AdamAL(**given(steps=args.steps, mode=args.mode, learning_rate=args.lr, al_every=args.al_every, rho=args.rho))
-    return ScreenSLP(**given(steps=args.steps, screen=args.screen, local=args.local, spread=args.spread))
+    return ScreenSLP(**given(steps=args.steps, screen=args.screen, local=args.local, spread=args.spread,
+                             search=args.search))
 
 
 def _plain(problem: Problem) -> dict:

@@ -79,7 +79,7 @@ class CMAES(Tuner):
         try:
             import cma  # noqa: F401
         except ImportError:
-            raise InputError("the CMA-ES tuner needs the cma package: pip install 'coopjax[baselines]'") from None
+            raise InputError("the CMA-ES tuner needs the cma package: pip install cma") from None
         starts = np.asarray(starts)
         es, fun = self._start(problem, starts[0], seed, self.popsize)
         return State(es, fun, 0, seed, problem, [], starts, 0, es.popsize)

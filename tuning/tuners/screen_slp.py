@@ -1,10 +1,14 @@
 """A batched screen, then trust-region linear programs on the worst case's epigraph with exact
 Jacobians: the simulator's two strengths, one after the other.
 
-1. **Screen.** `screen` scrambled-Sobol points in the box around the first start (x/÷ e^spread),
-   with every given start, run at every training mass in batches of the trials' shape (one compiled
-   program for both). The `local` best are kept, no two closer than `diverse` (log units, max norm),
-   so the local solves do not all refine one basin; the next ones wait in a queue.
+1. **Screen.** The given starts and `screen` more points in the box around the first start
+   (x/÷ e^spread), run at every training mass in batches of the trials' shape (one compiled program
+   for both). With `search="cma"` (the default) the first batch is the starts and scrambled-Sobol
+   points, and every later batch is a generation of CMA-ES (the `cma` package: population one
+   batch, initial step `sigma0`, bounded by the box) minimising the merit phi below: the same number
+   of runs as a Sobol screen, spent where the merit is low. With `search="sobol"` every point is a
+   Sobol point. The `local` best of all points screened are kept, no two closer than `diverse` (log
+   units, max norm), so the local solves do not all refine one basin; the next ones wait in a queue.
 2. **Local solve.** The worst case over masses has a kink wherever two masses are worst at once, and
    a gradient step on a smooth maximum zigzags across it. Its epigraph form has none:
 
@@ -37,6 +41,7 @@ has converged and takes the screen's next point.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 from scipy.optimize import linprog
@@ -47,6 +52,7 @@ from tuning.problem import grid, log_bounds
 from tuning.tuners.base import Evaluation, Query, Tuner, register
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
+BAD = 1e6  # the merit CMA-ES is told for a point whose run diverged
 
 
 @dataclasses.dataclass
@@ -70,6 +76,7 @@ class State:
     screen_log: list = dataclasses.field(default_factory=list)  # its batches so far: (thetas, Evaluation)
     seed: int = 0
     problem: object = None
+    es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
 
 
 def merit(ev_like: dict, w_lag, penalty, swi_penalty, swi_margin):
@@ -169,18 +176,23 @@ def _central_differences(query, ev, K, h):
     return Query(centre(query.thetas), query.masses, "jacobian"), lanes
 
 
+SEARCHES = ("cma", "sobol")
+
+
 @register
 @dataclasses.dataclass(frozen=True)
 class ScreenSLP(Tuner):
-    """A Sobol screen in one batch, then Sl1LP on the epigraph of the worst case from its best points."""
+    """A batched screen (CMA-ES or Sobol), then Sl1LP on the epigraph of the worst case from its best points."""
 
     name = "screen-SLP"
-    description = ("a batched Sobol screen, then trust-region linear programs on the worst case's epigraph with exact "
-                   "Jacobians (forward mode)")
+    description = ("a batched screen (CMA-ES generations), then trust-region linear programs on the worst case's "
+                   "epigraph with exact Jacobians (forward mode)")
     uses_gradient = True
 
-    screen: int = 512  # Sobol points of the screen (a power of 2), besides the given starts
+    screen: int = 512  # points of the screen besides the given starts (Sobol: a power of 2)
     spread: float = 2.5  # the screen's box: x/÷ e^spread around the first start, within the search box
+    search: str = "cma"  # the screen's points after its first batch: CMA-ES generations ("cma") or Sobol
+    sigma0: float = 1.0  # search="cma": CMA-ES's initial step, log units
     local: int = 8  # local solves side by side (lanes of one batch)
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
     diverse: float = 0.5  # least distance between two local starts, log units (max norm)
@@ -204,6 +216,8 @@ class ScreenSLP(Tuner):
     def init(self, problem, starts, seed):
         if self.jacobian not in ("exact", "fd"):
             raise InputError(f"jacobian is {self.jacobian!r}: exact or fd", "jacobian")
+        if self.search not in SEARCHES:
+            raise InputError(f"search is {self.search!r}: {' or '.join(SEARCHES)}", "search")
         lo, hi = log_bounds(problem.names)
         starts = np.clip(np.asarray(starts, np.float64), lo, hi)
         masses = grid(problem.training_range, problem.n_masses)
@@ -211,7 +225,38 @@ class ScreenSLP(Tuner):
         history["margin_asked"] = [self.swi_margin]
         state = State("screen", 0, masses, starts, history=history, seed=seed, problem=problem)
         state.screen_all = self.screen_points(state)
+        if self.search == "cma":
+            state.es = self._strategy(state)
         return state
+
+    def _strategy(self, state):
+        try:
+            import cma
+        except ImportError:
+            raise InputError("screen-SLP's CMA-ES screen needs the cma package: pip install cma, "
+                             "or screen with Sobol points alone (--search sobol)") from None
+        a, b = self._box(state)
+        options = {"bounds": [list(a), list(b)], "popsize": self.local * self.radii, "seed": state.seed + 1,
+                   "verbose": -9, "verb_log": 0, "verb_disp": 0}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return cma.CMAEvolutionStrategy(np.clip(state.starts[0], a, b), self.sigma0, options)
+
+    def _seeded(self, state) -> int:
+        """search="cma": the screen's points before CMA-ES takes over, the given starts and Sobol points
+        filling their last batch."""
+        batch = self.local * self.radii
+        return min(-(-len(state.starts) // batch) * batch, len(state.screen_all))
+
+    def _generation(self, state) -> np.ndarray:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return np.asarray(state.es.ask())
+
+    def _tell_strategy(self, state, thetas, phi):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            state.es.tell(list(thetas), [float(x) if np.isfinite(x) else BAD for x in phi])
 
     def _sobol_count(self, starts: int) -> int:
         """Sobol points in the screen: at least `screen`, as many as fill the last batch."""
@@ -235,8 +280,10 @@ class ScreenSLP(Tuner):
     def ask(self, state):
         if state.phase == "screen":
             # In batches of the trials' shape: one compiled program serves both.
-            done = sum(len(q) for q, _ in state.screen_log)
-            return Query(state.screen_all[done:done + self.local * self.radii], state.masses)
+            done, batch = sum(len(q) for q, _ in state.screen_log), self.local * self.radii
+            if self.search == "cma" and done >= self._seeded(state):
+                return Query(self._generation(state), state.masses)
+            return Query(state.screen_all[done:done + batch], state.masses)
         if state.phase == "screen only":  # no local solve (the ablation): more Sobol points until the budget ends
             return Query(self._more_points(state), state.masses)
         if state.phase == "jacobian" and state.step < self.steps:
@@ -251,7 +298,9 @@ class ScreenSLP(Tuner):
         return None
 
     def _more_points(self, state):
-        """The next batch of the same Sobol sequence, after the screen's points."""
+        """The next generation of the screen's CMA-ES, or the next batch of the same Sobol sequence."""
+        if self.search == "cma":
+            return self._generation(state)
         a, b = self._box(state)
         batch = self.local * self.radii
         sobol = qmc.Sobol(d=len(a), scramble=True, seed=state.seed)
@@ -260,6 +309,8 @@ class ScreenSLP(Tuner):
 
     def _tell_more(self, state, query, ev):
         _, ok, phi = self._ok_phi(state, ev)
+        if self.search == "cma":
+            self._tell_strategy(state, query.thetas, phi)
         for i in range(len(phi)):
             self._keep_best(state, 0, ev.holds[i], phi[i], query.thetas[i])
         state.step += 1
@@ -277,6 +328,8 @@ class ScreenSLP(Tuner):
         return out, ok, np.where(ok, self._phi(out, state.problem), np.inf)
 
     def _tell_screen(self, state, query, ev):
+        if self.search == "cma" and sum(len(q) for q, _ in state.screen_log) >= self._seeded(state):  # a generation
+            self._tell_strategy(state, query.thetas, self._ok_phi(state, ev)[2])
         state.screen_log.append((query.thetas, ev))
         if sum(len(q) for q, _ in state.screen_log) < len(state.screen_all):
             return state
@@ -377,8 +430,16 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
-        return (f"a screen of {starts} starts + {self._sobol_count(starts)} Sobol points, then {self.local} local solves side by side, "
+        return (f"a screen of {self._screen_text(starts)}, then {self.local} local solves side by side, "
                 f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)")
+
+    def _screen_text(self, starts):
+        batch, count = self.local * self.radii, self._sobol_count(starts)
+        seeded = min(-(-starts // batch) * batch, starts + count)
+        if self.search == "sobol" or seeded == starts + count:
+            return f"{starts} starts + {count} Sobol points"
+        return (f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} CMA-ES "
+                f"generations of {batch}")
 
     def progress_text(self, state, query, ev):
         if state.phase == "jacobian" and query.derivative is None and state.screened and state.step == 0:
