@@ -93,7 +93,7 @@ def test_the_screen_hands_the_best_distinct_points_to_the_local_solve():
     thetas = np.array([[0.0, 0.0], [0.1, 0.0], [3.0, 3.0], [1.0, -1.0]])
     phi = np.array([2.0, 1.0, np.inf, 5.0])
     assert diverse_best(thetas, phi, 3, 0.5) == [1, 3]  # 0 is within 0.5 of the better 1; 2 did not run
-    tuner = ScreenSLP(screen=16, local=3, radii=4, steps=1)
+    tuner = ScreenSLP(screen=16, local=3, radii=4, steps=1, search="sobol")
     state = tuner.init(PROBLEM, np.array([[2.0, 2.0]]), 0)
     asked, told = [], []
     while state.phase == "screen":  # in batches of the trials' shape (3 lanes x 4 radii)
@@ -109,6 +109,33 @@ def test_the_screen_hands_the_best_distinct_points_to_the_local_solve():
     assert tuner.ask(state).derivative == "jacobian"
 
 
+def screen(tuner, starts):
+    """Every batch of the tuner's screen on CB2: (points, merits), one entry per batch."""
+    state = tuner.init(PROBLEM, np.asarray(starts, float), 0)
+    batches = []
+    while state.phase == "screen":
+        query = tuner.ask(state)
+        ev = Analytic()(query)
+        batches.append((query.thetas, ev.peak.max(1)))
+        state = tuner.tell(state, query, ev)
+    return batches
+
+
+def test_the_cma_screen_spends_its_batches_where_the_merit_is_low():
+    cma = screen(ScreenSLP(screen=116, local=3, radii=4, steps=1, search="cma"), [[2.0, 2.0]])
+    sobol = screen(ScreenSLP(screen=116, local=3, radii=4, steps=1, search="sobol"), [[2.0, 2.0]])
+    assert [len(x) for x, _ in cma] == [len(x) for x, _ in sobol] == [12] * 10  # the same runs, the same batches
+    assert np.array_equal(cma[0][0], sobol[0][0])  # the first batch: the start and Sobol points, for both
+    lo, hi = np.array([-0.5, -0.5]), np.array([4.5, np.log(10.0)])  # the box: e^2.5 around the start, in bounds
+    assert all(((x >= lo - 1e-12) & (x <= hi + 1e-12)).all() for x, _ in cma)
+    # Later generations concentrate near the minimum (they would not if CMA-ES were never told): the
+    # merit's median falls from about 11 in the first generation to within 0.5 of CB2's minimum.
+    assert np.median(cma[-1][1]) < CB2_MIN + 0.5 < 5.0 < np.median(cma[1][1])
+    assert max(np.median(phi) for _, phi in sobol) > 8.0  # Sobol points stay spread over the box
+    best = lambda batches: min(phi.min() for _, phi in batches)
+    assert best(cma) - CB2_MIN < 0.05 < 0.2 < best(sobol) - CB2_MIN
+
+
 def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():
     tuner = ScreenSLP(screen=0, local=2, steps=40)
     starts = [[2.0, 2.0], [0.0, -1.0]]
@@ -120,12 +147,15 @@ def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():
     assert np.allclose(best, CB2_AT, atol=1e-4)
 
 
-def test_resume_replays_to_the_same_iterates(tmp_path):
+@pytest.mark.parametrize("screened, stop", [(8, 2 * 8 * 3 + 2 * 3 + 8 * 3 + 2 * 3), (40, 3 * 8 * 3)],
+                         ids=["in the local solves", "among the CMA-ES generations"])
+def test_resume_replays_to_the_same_iterates(tmp_path, screened, stop):
     starts = [[2.0, 2.0], [0.0, -1.0]]
-    tuner = ScreenSLP(screen=8, local=2, steps=8)
+    tuner = ScreenSLP(screen=screened, local=2, steps=8)
     whole = solve(tuner, starts, Analytic())
     path = str(tmp_path / "run.ckpt")
-    solve(tuner, starts, Analytic(), checkpoint=path, budget=driver.Budget(trajectories=2 * 8 * 3 + 2 * 3 + 8 * 3 + 2 * 3))
+    first = solve(tuner, starts, Analytic(), checkpoint=path, budget=driver.Budget(trajectories=stop))
+    assert (first.state.phase == "screen") == (screened == 40)  # stopped among the generations, or after
     resumed = solve(tuner, starts, Analytic(), checkpoint=path, resume=True)
     assert resumed.evaluations == whole.evaluations
     assert np.array_equal(resumed.state.theta, whole.state.theta)

@@ -4,8 +4,8 @@ the local solve does.
 - `screen-SLP/FD`: the same tuner with central differences (2n + 1 runs per lane and step) in place of
   forward-mode Jacobians: what a design optimiser without derivatives (Simulink Design Optimization's
   fmincon) pays and gets.
-- `screen only`: the same screen, continued batch after batch with further Sobol points until the
-  clock ends, and no local solve.
+- `screen only`: the same screen, continued batch after batch until the clock ends (further CMA-ES
+  generations; with search="sobol", further Sobol points), and no local solve.
 """
 
 from __future__ import annotations
@@ -28,5 +28,5 @@ class ScreenSLPFiniteDifferences(ScreenSLP):
 @dataclasses.dataclass(frozen=True)
 class ScreenOnly(ScreenSLP):
     name = "screen only"
-    description = "the ablation: screen-SLP's screen alone, continued with more Sobol points until the clock ends"
+    description = "the ablation: screen-SLP's screen alone, continued until the clock ends"
     steps: int = 0
