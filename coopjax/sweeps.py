@@ -4,8 +4,8 @@ Determinism is by construction:
 - Sample i's random draws depend only on (seed, parameter name, i), through a counter-based hash.
   So the chunk size, device count and process count cannot change them.
 - Every device always runs the same per-device block of `block` samples (padded if need be), and
-  `block` depends only on the sweep size (or is fixed by the caller). XLA therefore compiles the same per-device program
-  whatever the chunking, and rounding cannot differ between layouts. The closed loop can amplify
+  `block` depends only on the sweep size (or is fixed by the caller). XLA therefore compiles the
+  same per-device program whatever the chunking, and rounding cannot differ between layouts. The closed loop can amplify
   rounding (docs/model.md, "Step size"), so that matters.
 
 Across machines, processes started with `jax.distributed` take chunks in turn. After each round the
@@ -304,6 +304,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
 
     `block` fixes the samples per device per call (None: `block_size` of the sweep), so that sweeps
     of different sizes share one compiled program.
+
     With `parts`, each finished chunk is saved there atomically, and `resume=True` skips those
     already saved. Under `jax.distributed`, chunks are shared among processes and process 0 returns
     the whole table (others return it too, except after a resume, when they return None).

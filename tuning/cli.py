@@ -54,9 +54,9 @@ def add_parser(sub):
         NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
         description="Tune controller parameters on the carry scenario, on the hard switch under the sliding-mode "
         "integrator: minimise worst-case peak grip force + w_lag x worst-case RMS lag, with the grip holding at every "
-        "training mass. The default method (screen-SLP) screens hundreds of points in batches (CMA-ES generations), then runs trust-region "
-        "linear programs on the worst case from the best of them, with exact Jacobians; --method gradient runs Adam "
-        "on an augmented Lagrangian. The result is judged with the hard model at --judge-dt on held-out masses. "
+        "training mass. The default method (screen-SLP) screens hundreds of points in batches (CMA-ES "
+        "generations), then runs trust-region linear programs on the worst case from the best of them, with exact "
+        "Jacobians; --method gradient runs Adam on an augmented Lagrangian. The result is judged with the hard model at --judge-dt on held-out masses. "
         "Writes OUT (json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
         "_race.png; with --pareto: _pareto.png).",
     )
@@ -355,7 +355,8 @@ class _StartSide(threading.Thread):
     """The start's verdict and traces, which do not depend on the tuning, computed in a background
     thread while the tuner runs. A run of small batches leaves part of the cores idle, and these
     compile the judge's programs (at dt and dt/2) and the traces' one, which the tuned set's verdict
-    and traces then reuse: about 10 s off a cold run. An error is raised where the result is asked."""
+    and traces then reuse: 7 to 9 s off a cold default run (with one judging block for every size,
+    `JUDGE_BLOCK`). An error is raised where the result is asked."""
 
     def __init__(self, plan: Plan):
         super().__init__(daemon=True)  # Ctrl-C does not wait for it

@@ -284,7 +284,7 @@ class ScreenSLP(Tuner):
             if self.search == "cma" and done >= self._seeded(state):
                 return Query(self._generation(state), state.masses)
             return Query(state.screen_all[done:done + batch], state.masses)
-        if state.phase == "screen only":  # no local solve (the ablation): more Sobol points until the budget ends
+        if state.phase == "screen only":  # no local solve (the ablation): the screen goes on until the budget ends
             return Query(self._more_points(state), state.masses)
         if state.phase == "jacobian" and state.step < self.steps:
             if self.jacobian == "fd":  # each lane, then it moved by +h and -h along each parameter: values only
