@@ -24,6 +24,21 @@ from tuning.tuners.base import Query, Tuner, register
 BAD = 1e6  # the objective given to CMA-ES for a candidate whose run diverged
 
 
+def strategy(x0, sigma0, lo, hi, seed, popsize=None):
+    """A quiet `cma.CMAEvolutionStrategy` in the box [lo, hi] (log units), from x0 clipped into it,
+    writing no log files; popsize None: cma's recommended 4 + 3 ln n."""
+    try:
+        import cma
+    except ImportError:
+        raise InputError("CMA-ES needs the cma package: pip install cma") from None
+    options = {"bounds": [list(lo), list(hi)], "seed": seed, "verbose": -9, "verb_log": 0, "verb_disp": 0}
+    if popsize:
+        options["popsize"] = popsize
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return cma.CMAEvolutionStrategy(np.clip(np.asarray(x0), lo, hi), sigma0, options)
+
+
 @dataclasses.dataclass
 class State:
     es: object
@@ -52,12 +67,7 @@ class CMAES(Tuner):
         import cma
 
         lo, hi = log_bounds(problem.names)
-        options = {"bounds": [list(lo), list(hi)], "seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
-        if popsize:
-            options["popsize"] = popsize
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            es = cma.CMAEvolutionStrategy(np.clip(np.asarray(x0), lo, hi), self.sigma0, options)
+        es = strategy(x0, self.sigma0, lo, hi, seed + 1, popsize)
         cache = {}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
@@ -76,10 +86,6 @@ class CMAES(Tuner):
         return es, fun
 
     def init(self, problem, starts, seed):
-        try:
-            import cma  # noqa: F401
-        except ImportError:
-            raise InputError("the CMA-ES tuner needs the cma package: pip install cma") from None
         starts = np.asarray(starts)
         es, fun = self._start(problem, starts[0], seed, self.popsize)
         return State(es, fun, 0, seed, problem, [], starts, 0, es.popsize)

@@ -50,6 +50,7 @@ from scipy.stats import qmc
 from coopjax.errors import InputError
 from tuning.problem import grid, log_bounds
 from tuning.tuners.base import Evaluation, Query, Tuner, register
+from tuning.tuners.cmaes import strategy
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
 BAD = 1e6  # the merit CMA-ES is told for a point whose run diverged
@@ -226,21 +227,9 @@ class ScreenSLP(Tuner):
         state = State("screen", 0, masses, starts, history=history, seed=seed, problem=problem)
         state.screen_all = self.screen_points(state)
         if self.search == "cma":
-            state.es = self._strategy(state)
+            a, b = self._box(state)
+            state.es = strategy(state.starts[0], self.sigma0, a, b, seed + 1, self.local * self.radii)
         return state
-
-    def _strategy(self, state):
-        try:
-            import cma
-        except ImportError:
-            raise InputError("screen-SLP's CMA-ES screen needs the cma package: pip install cma, "
-                             "or screen with Sobol points alone (--search sobol)") from None
-        a, b = self._box(state)
-        options = {"bounds": [list(a), list(b)], "popsize": self.local * self.radii, "seed": state.seed + 1,
-                   "verbose": -9, "verb_log": 0, "verb_disp": 0}
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return cma.CMAEvolutionStrategy(np.clip(state.starts[0], a, b), self.sigma0, options)
 
     def _seeded(self, state) -> int:
         """search="cma": the screen's points before CMA-ES takes over, the given starts and Sobol points
