@@ -64,10 +64,10 @@ class CMAES(Tuner):
     ipop: bool = True  # restart with twice the population when a run stops
 
     def _start(self, problem, x0, seed, popsize):
+        lo, hi = log_bounds(problem.names)
+        es = strategy(x0, self.sigma0, lo, hi, seed + 1, popsize)  # first: it refuses a missing cma in one line
         import cma
 
-        lo, hi = log_bounds(problem.names)
-        es = strategy(x0, self.sigma0, lo, hi, seed + 1, popsize)
         cache = {}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
