@@ -124,11 +124,8 @@ def accuracy(numba_rk4, horizon: float = 4.0, peers=None) -> dict:
     out["lsoda_smooth"] = float(np.abs(F - ours).max() / np.abs(ours).max())
     out["ok"] = {k: v <= (LSODA_TOLERANCE if k.startswith("lsoda") else TOLERANCE) for k, v in out.items()}
     if peers:
-        # The strong peer against coopjax's carry metrics, 1e-9 relative. The N^2 means are often
-        # round-off (1e-28 N^2 while the grip slides on F_lim): an absolute floor of 1e-9 N^2. Plain
-        # RK4 on the hard switch chatters on F = F_lim and amplifies round-off after the first second
-        # (two correct transcriptions then part), so it is compared over that second.
-        from benchmarks.strong_peer import METRICS
+        # The strong peer against coopjax's carry metrics, 1e-9 relative (`strong_peer.agreement`).
+        from benchmarks.strong_peer import agreement
 
         rng = np.random.default_rng(2)
         B = 8
@@ -136,15 +133,7 @@ def accuracy(numba_rk4, horizon: float = 4.0, peers=None) -> dict:
                                 K_GI=rng.uniform(0.01, 0.8, B), tau=rng.uniform(0.2, 4.0, B),
                                 G_e=np.exp(rng.uniform(np.log(50.0), np.log(3000.0), B)))
         for step, T in (("filippov", horizon), ("rk4", min(horizon, 1.0))):
-            ours = cj.simulate(params, "carry", integrator=step, T=T, check_dt=False).metrics
-            theirs = peers[step, "float64"](im.parameter_matrix(params), T_end=T, block=B)
-            worst = 0.0
-            for j, name in enumerate(METRICS):
-                a_, b_ = np.asarray(getattr(ours, name), np.float64), theirs[j]
-                floor = 1e-9 if name in ("slip", "crush", "impact") else 0.0
-                err = np.abs(a_ - b_) / np.maximum(np.abs(a_), 1e-300)
-                err = np.where(np.abs(a_ - b_) <= floor, 0.0, err)
-                worst = max(worst, float(np.nanmax(np.where(np.isnan(a_) & np.isnan(b_), 0.0, err))))
+            worst = agreement(step, params, T)
             out[f"strong_peer_{step}_metrics"] = worst
             out["ok"][f"strong_peer_{step}_metrics"] = worst <= 1e-9
     return out
@@ -349,7 +338,7 @@ def main(argv=None) -> int:
         numba_rk4 = None
 
     peers = {}
-    if numba_rk4 is not None:  # the strong peer: 20 to 30 s of numba compile per step and dtype
+    if numba_rk4 is not None:  # the strong peer: numba compiles each step and dtype for minutes (docs/speed.md)
         from benchmarks.strong_peer import make_peer
 
         print("compiling the strong peer ...", flush=True)

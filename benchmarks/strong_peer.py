@@ -38,6 +38,7 @@ import math as _math
 import numpy as np
 
 from benchmarks.implementations import PER_ROBOT
+from coopjax.integration.tableau import RK4
 
 N_METRICS = 8  # min_grip, peak_grip, slip, crush, impact, rms_lag, finite, t_diverged
 METRICS = ("min_grip", "peak_grip", "slip", "crush", "impact", "rms_lag")
@@ -76,6 +77,14 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     PIECES = 3  # as filippov.PIECES
     C2, C12, C30, C56, C90 = T(2.0), T(12.0), T(30.0), T(56.0), T(90.0)
     C6, C20, C42, C72, C110 = T(6.0), T(20.0), T(42.0), T(72.0), T(110.0)
+    # RK4 as coopjax's tableau has it: stage nodes, weights, and the dense output's polynomials,
+    # whose second and third stages share one (`Tableau.dense_groups`).
+    A2, A3, A4 = (T(a) for a in RK4.a[1:])
+    W1, W2, W3, W4 = (T(w) for w in RK4.b)
+    DEN = T(RK4.denominator)
+    groups = RK4.dense_groups()
+    assert [members for _, members in groups] == [(0,), (1, 2), (3,)], "the peer writes RK4's dense groups out"
+    D1, D23, D4 = (tuple(T(c) for c in row) for row, _ in groups)
     base = 2 * len(PER_ROBOT)
     vectorising_llvm()
     jit = functools.partial(numba.njit, error_model="numpy", fastmath=False, boundscheck=False)
@@ -162,8 +171,8 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
 
     @inline
     def weighted(k1, k2, k3, k4):
-        """k1 + 2 k2 + 2 k3 + k4 for 20-tuples (RK4's weights)."""
-        return (k1[0] + TWO * k2[0] + TWO * k3[0] + k4[0], k1[1] + TWO * k2[1] + TWO * k3[1] + k4[1], k1[2] + TWO * k2[2] + TWO * k3[2] + k4[2], k1[3] + TWO * k2[3] + TWO * k3[3] + k4[3], k1[4] + TWO * k2[4] + TWO * k3[4] + k4[4], k1[5] + TWO * k2[5] + TWO * k3[5] + k4[5], k1[6] + TWO * k2[6] + TWO * k3[6] + k4[6], k1[7] + TWO * k2[7] + TWO * k3[7] + k4[7], k1[8] + TWO * k2[8] + TWO * k3[8] + k4[8], k1[9] + TWO * k2[9] + TWO * k3[9] + k4[9], k1[10] + TWO * k2[10] + TWO * k3[10] + k4[10], k1[11] + TWO * k2[11] + TWO * k3[11] + k4[11], k1[12] + TWO * k2[12] + TWO * k3[12] + k4[12], k1[13] + TWO * k2[13] + TWO * k3[13] + k4[13], k1[14] + TWO * k2[14] + TWO * k3[14] + k4[14], k1[15] + TWO * k2[15] + TWO * k3[15] + k4[15], k1[16] + TWO * k2[16] + TWO * k3[16] + k4[16], k1[17] + TWO * k2[17] + TWO * k3[17] + k4[17], k1[18] + TWO * k2[18] + TWO * k3[18] + k4[18], k1[19] + TWO * k2[19] + TWO * k3[19] + k4[19])
+        """W1 k1 + W2 k2 + W3 k3 + W4 k4 for 20-tuples (RK4's weights, to be divided by DEN)."""
+        return (W1 * k1[0] + W2 * k2[0] + W3 * k3[0] + W4 * k4[0], W1 * k1[1] + W2 * k2[1] + W3 * k3[1] + W4 * k4[1], W1 * k1[2] + W2 * k2[2] + W3 * k3[2] + W4 * k4[2], W1 * k1[3] + W2 * k2[3] + W3 * k3[3] + W4 * k4[3], W1 * k1[4] + W2 * k2[4] + W3 * k3[4] + W4 * k4[4], W1 * k1[5] + W2 * k2[5] + W3 * k3[5] + W4 * k4[5], W1 * k1[6] + W2 * k2[6] + W3 * k3[6] + W4 * k4[6], W1 * k1[7] + W2 * k2[7] + W3 * k3[7] + W4 * k4[7], W1 * k1[8] + W2 * k2[8] + W3 * k3[8] + W4 * k4[8], W1 * k1[9] + W2 * k2[9] + W3 * k3[9] + W4 * k4[9], W1 * k1[10] + W2 * k2[10] + W3 * k3[10] + W4 * k4[10], W1 * k1[11] + W2 * k2[11] + W3 * k3[11] + W4 * k4[11], W1 * k1[12] + W2 * k2[12] + W3 * k3[12] + W4 * k4[12], W1 * k1[13] + W2 * k2[13] + W3 * k3[13] + W4 * k4[13], W1 * k1[14] + W2 * k2[14] + W3 * k3[14] + W4 * k4[14], W1 * k1[15] + W2 * k2[15] + W3 * k3[15] + W4 * k4[15], W1 * k1[16] + W2 * k2[16] + W3 * k3[16] + W4 * k4[16], W1 * k1[17] + W2 * k2[17] + W3 * k3[17] + W4 * k4[17], W1 * k1[18] + W2 * k2[18] + W3 * k3[18] + W4 * k4[18], W1 * k1[19] + W2 * k2[19] + W3 * k3[19] + W4 * k4[19])
 
     @inline
     def weighted_dense(k1, k2, k3, k4, b1, b23, b4):
@@ -370,11 +379,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL)
         lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR, frR)
         k = assemble(blend(fL[0], fL[1], lamL), blend(fR[0], fR[1], lamR), y[19], a_o)
-        k2, _, _ = stage(P, b, y, k, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+        k2, _, _ = stage(P, b, y, k, A2 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
                          holdR, frL, frR)
-        k3, _, _ = stage(P, b, y, k2, HALF * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+        k3, _, _ = stage(P, b, y, k2, A3 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
                          holdR, frL, frR)
-        k4, endL, endR = stage(P, b, y, k3, h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
+        k4, endL, endR = stage(P, b, y, k3, A4 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
                                holdR, frL, frR)
         total = weighted(k, k2, k3, k4)
         # The switch held through the whole piece, below (off) or above (on) the surface.
@@ -485,7 +494,7 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             tb, cb, sb = advance(t, cos_t, sin_t, off[b])
             total, h, iL, iR, sfL, sfR, sL, sR, heldL, heldR, k1, k2, k3, k4, slides = substep(
                 P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], kpL[b], kpR[b], dt, last)
-            new = axpy(yb, h / T(6.0), total)
+            new = axpy(yb, h / DEN, total)
             # A crossing the piece held the switch through: the piece ends there, on RK4's continuous
             # extension (filippov.step).
             _, _, kL = geometry(P, 0, b, ONE, new[0], new[2], new[18], new[19])
@@ -508,9 +517,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             if fL or fR:
                 tau = min(tL if fL else INF, tR if fR else INF)
                 th = tau / (h if h > Z0 else ONE)
-                b1 = th - T(1.5) * th * th + T(2.0 / 3.0) * th * th * th
-                b23 = th * th - T(2.0 / 3.0) * th * th * th
-                b4 = -HALF * th * th + T(2.0 / 3.0) * th * th * th
+                b1 = D1[0] * th + D1[1] * th * th + D1[2] * th * th * th
+                b23 = D23[0] * th + D23[1] * th * th + D23[2] * th * th * th
+                b4 = D4[0] * th + D4[1] * th * th + D4[2] * th * th * th
                 new = axpy(yb, h, weighted_dense(k1, k2, k3, k4, b1, b23, b4))
                 h_eff = tau
                 sfL = fL and tL <= tau and hL >= 0
@@ -556,17 +565,18 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         """A plain RK4 step for every sample of the block, and its path's metrics."""
         (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
          hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
-        dt2 = dt / TWO
-        dt6 = dt / T(6.0)
-        tm, cm, sm = advance(t, cos_t, sin_t, dt2)
-        te, ce, se = advance(t, cos_t, sin_t, dt)
+        c2, c3, c4 = A2 * dt, A3 * dt, A4 * dt
+        t2, cos2, sin2 = advance(t, cos_t, sin_t, c2)
+        t3, cos3, sin3 = advance(t, cos_t, sin_t, c3)
+        t4, cos4, sin4 = advance(t, cos_t, sin_t, c4)
+        dt_den = dt / DEN
         for b in range(P.shape[1]):
             yb = load(y, b)  # equal to yn here; reading one array and writing another
             k1 = hard_field(P, b, yb, t, cos_t, sin_t)
-            k2 = hard_field(P, b, axpy(yb, dt2, k1), tm, cm, sm)
-            k3 = hard_field(P, b, axpy(yb, dt2, k2), tm, cm, sm)
-            k4 = hard_field(P, b, axpy(yb, dt, k3), te, ce, se)
-            store(yn, b, axpy(yb, dt6, weighted(k1, k2, k3, k4)))
+            k2 = hard_field(P, b, axpy(yb, c2, k1), t2, cos2, sin2)
+            k3 = hard_field(P, b, axpy(yb, c3, k2), t3, cos3, sin3)
+            k4 = hard_field(P, b, axpy(yb, c4, k3), t4, cos4, sin4)
+            store(yn, b, axpy(yb, dt_den, weighted(k1, k2, k3, k4)))
         # The metrics in a loop of their own: in the step's loop they kept it from vectorising.
         for b in range(P.shape[1]):
             eL, eR = forces_at(P, b, load(yn, b), False, False, False, False)
@@ -666,6 +676,30 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return run(P, T(dt), n, g0, g1, l0, l1, T(F_bound), T(F_max), int(block))
 
     return metrics
+
+
+def agreement(step: str, params, T_end: float, block: int = BLOCK) -> float:
+    """The largest relative disagreement of the peer's carry metrics with coopjax's, float64.
+
+    The N^2 means are often round-off (1e-28 N^2 while the grip slides on F_lim): an absolute floor of
+    1e-9 N^2. Plain RK4 on the hard switch chatters on F = F_lim and amplifies round-off after the
+    first second (two correct transcriptions then part): compare it over that second.
+    Under NUMBA_DISABLE_JIT=1 the peer runs as Python, which is how the test suite checks it.
+    """
+    import coopjax as cj
+    from benchmarks.implementations import parameter_matrix
+
+    ours = cj.simulate(params, "carry", integrator=step, T=T_end, check_dt=False, dtype="float64").metrics
+    theirs = make_peer(step, "float64")(parameter_matrix(params), T_end=T_end, block=block)
+    worst = 0.0
+    for j, name in enumerate(METRICS):
+        a, b = np.asarray(getattr(ours, name), np.float64), theirs[j]
+        floor = 1e-9 if name in ("slip", "crush", "impact") else 0.0
+        err = np.abs(a - b) / np.maximum(np.abs(a), 1e-300)
+        err = np.where(np.abs(a - b) <= floor, 0.0, err)
+        err = np.where(np.isnan(a) & np.isnan(b), 0.0, np.where(np.isnan(a) | np.isnan(b), np.inf, err))
+        worst = max(worst, float(np.max(err)))
+    return worst
 
 
 # --- the FLOP count of the source ---------------------------------------------------------------

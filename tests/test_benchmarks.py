@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -47,25 +46,40 @@ def test_the_summary_states_coopjax_against_the_strong_peer_and_the_peak():
     assert s["coopjax_over_numba_float64"] == pytest.approx(2.0)
 
 
+# Samples for the peer's agreement: light and heavy bodies (impacts, long sliding), soft and stiff gains.
+PEER_SAMPLES = dict(M_b=[0.5, 2.0, 5.0, 20.0], K_GP=[0.05, 0.5, 1.5, 0.3], K_GI=[0.01, 0.1, 0.8, 0.3],
+                    tau=[0.2, 1.25, 4.0, 1.0], G_e=[50.0, 600.0, 3000.0, 200.0])
+AGREEMENT = """
+import sys, jax
+jax.config.update("jax_enable_x64", True)
+import coopjax as cj
+from benchmarks.strong_peer import agreement
+params = cj.make_params(**{samples})
+print(agreement("filippov", params, 4.0, block=3), agreement("rk4", params, 1.0, block=3))
+"""
+
+
+def test_the_strong_peer_does_the_same_step_as_coopjax():
+    # The peer's own source run as Python (NUMBA_DISABLE_JIT=1), so that a change to the step that
+    # forgets the peer fails here, in every run; two blocks, one partial.
+    run = subprocess.run([sys.executable, "-c", AGREEMENT.format(samples=PEER_SAMPLES)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=600, env=dict(os.environ, NUMBA_DISABLE_JIT="1"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    filippov, rk4 = map(float, run.stdout.split())
+    assert filippov <= 1e-9 and rk4 <= 1e-9, (filippov, rk4)
+
+
 @pytest.mark.slow
-def test_the_strong_peer_is_coopjax_to_1e_9():
+def test_the_compiled_strong_peer_is_coopjax_to_1e_9():
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import coopjax as cj
-    from benchmarks.implementations import parameter_matrix
-    from benchmarks.strong_peer import METRICS, make_peer
+    from benchmarks.strong_peer import agreement
 
-    rng = np.random.default_rng(5)
-    B = 6
-    params = cj.make_params(M_b=np.exp(rng.uniform(np.log(0.5), np.log(5.0), B)), K_GP=rng.uniform(0.05, 1.5, B),
-                            G_e=np.exp(rng.uniform(np.log(50.0), np.log(3000.0), B)))
-    ours = cj.simulate(params, "carry", check_dt=False).metrics
-    theirs = make_peer("filippov", "float64")(parameter_matrix(params), block=4)  # two blocks, one partial
-    for j, name in enumerate(METRICS):
-        a, b = np.asarray(getattr(ours, name)), theirs[j]
-        floor = 1e-9 if name in ("slip", "crush", "impact") else 0.0
-        assert np.all((np.abs(a - b) <= 1e-9 * np.abs(a) + floor) | (np.isnan(a) & np.isnan(b))), (name, a, b)
+    params = cj.make_params(**PEER_SAMPLES)
+    assert agreement("filippov", params, 4.0, block=3) <= 1e-9
+    assert agreement("rk4", params, 1.0, block=3) <= 1e-9
 
 
 @pytest.mark.slow

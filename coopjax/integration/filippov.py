@@ -1,4 +1,4 @@
-"""The sliding-mode integrator for the hard switch (docs/model.md, "The sliding-mode step").
+"""The sliding-mode integrator for the hard switch (docs/model.md, "What `integrator=\"filippov\"` does").
 
 Fixed step, branch-free inside each RK4 stage, batched. The hard switch makes the field
 discontinuous on sigma_i = F_i - F_lim = 0. In the carry scenario both surfaces attract, so the exact
@@ -49,12 +49,21 @@ O(dt), but its derivative with respect to the parameters would not converge.
 
 Stage times differ per sample within the substeps; commands take them through `Clock.advance`.
 
+Names: a step is up to `PIECES` pieces (`Piece`, from `substep`), carried through the step as
+`Progress`. A piece's `Plan` is its length and its `Overrides`: per robot, the contact held on or
+off and the switch held as a `Switch` (`OFF`, `ON`, or `FREE` for the Filippov weight), plus
+whether the piece ends where the robot's force reaches F_lim (`at_switch`, a separate field: a
+switch kept held after a sliding exit does not end the piece at a switch). The events a piece's own
+solution reveals are `Event`s (`trial_crossing`, `sliding_exit`). `Touch` is one robot's contact
+at a point; `Fields` its two fields there.
+
 Layout: the state is a `Rows` pytree, one dict of (B,) rows per robot and the body's rows, and each
 robot's fields are evaluated on its own rows (model.py, module docstring: the fast layout).
 """
 
 from __future__ import annotations
 
+import enum
 from typing import NamedTuple
 
 import jax
@@ -62,6 +71,7 @@ import jax.numpy as jnp
 
 from coopjax import model
 from coopjax.integration.base import Integrator, Path, register
+from coopjax.integration.tableau import RK4
 from coopjax.scenarios import Clock
 
 EPS = 1e-9  # N/s: below this the two switching rates are taken as equal (step 1 of the weight)
@@ -72,6 +82,14 @@ PIECES = 3  # substeps per step: up to two events located in one step
 # the surface, sliding on it). Located or not, so short a piece changes the step by far less than
 # the tolerances.
 SHORTEST_EVENT = 1e-2
+
+
+class Switch(enum.IntEnum):
+    """How a piece sets one robot's switch w_i. Carried as int codes in (B,) arrays."""
+
+    FREE = -1  # not held: the Filippov weight lambda decides
+    OFF = 0  # held off, w = 0 (below the surface, up to the force reaching F_lim)
+    ON = 1  # held on, w = 1 (above it)
 
 
 class Rows(NamedTuple):
@@ -94,15 +112,23 @@ class Rows(NamedTuple):
         return model.join(self.robots, self.body)
 
 
-class Contact(NamedTuple):
-    """Per-robot overrides for a substep, each a pair of (B,) arrays (L, R): the contact forced on or
-    off (booleans), and the switch held off or on for the whole substep (`hold`: 0 off, 1 on, -1 not
-    held), for a robot whose substep ends where its force reaches F_lim."""
+class Overrides(NamedTuple):
+    """What a piece holds fixed for each robot, each a pair (L, R) of (B,) arrays."""
 
-    on: tuple
-    off: tuple
-    hold: tuple | None = None
-    free: tuple | None = None  # (B,) bool per robot: sliding, lambda* not clipped (the exit trial)
+    touching: tuple  # bool: contact held on (the piece after the robot's impact)
+    apart: tuple  # bool: contact held off (the piece that ends at the robot's impact)
+    switch: tuple | None = None  # `Switch` codes: w_i held through the piece, or FREE
+    free: tuple | None = None  # bool: sliding through the piece with lambda* unclipped (the exit trial)
+
+
+class Touch(NamedTuple):
+    """One robot's contact at a point."""
+
+    in_contact: jax.Array  # (B,) bool, after the piece's overrides
+    F: jax.Array  # (B,) the contact force max(kelvin, 0) in contact, else 0, N
+    kelvin: jax.Array  # (B,) K_g delta + R_g delta_dot, N
+    delta: jax.Array  # (B,) penetration, m
+    delta_dot: jax.Array  # (B,) its rate, m/s
 
 
 class Fields(NamedTuple):
@@ -120,42 +146,46 @@ class Fields(NamedTuple):
     aux_on: model.Aux
 
 
-def _contacts(ps, rows: Rows, options, contact: Contact | None = None):
-    """Per robot (in_contact, F, kelvin, delta, delta_dot), with the substep's override if any."""
+def touches(ps, rows: Rows, options, overrides: Overrides | None = None) -> tuple[Touch, Touch]:
+    """Both robots' contact at a point, under a piece's contact overrides if any."""
     out = []
     for i in range(2):
         delta, delta_dot, kelvin = model.geometry(ps[i], rows.robot(i), model.SIGNS[i])
         if options.contact == "bilateral":
-            out.append((jnp.ones_like(delta, bool), kelvin, kelvin, delta, delta_dot))
+            out.append(Touch(jnp.ones_like(delta, bool), kelvin, kelvin, delta, delta_dot))
             continue
         in_contact = delta > 0.0
-        if contact is not None:
-            in_contact = contact.on[i] | (~contact.off[i] & in_contact)
-        out.append((in_contact, jnp.where(in_contact, jnp.maximum(kelvin, 0.0), 0.0), kelvin, delta, delta_dot))
-    return out
+        if overrides is not None:
+            in_contact = overrides.touching[i] | (~overrides.apart[i] & in_contact)
+        out.append(Touch(in_contact, jnp.where(in_contact, jnp.maximum(kelvin, 0.0), 0.0), kelvin, delta, delta_dot))
+    return tuple(out)
 
 
-def fields(ps, rows: Rows, clock: Clock, contact: Contact | None, scenario, options):
+def forces(touch: tuple[Touch, Touch]) -> jax.Array:
+    """The two contact forces (2, B)."""
+    return jnp.stack([t.F for t in touch])
+
+
+def fields(ps, rows: Rows, clock: Clock, overrides: Overrides | None, scenario, options):
     """Both robots' w = 0 and w = 1 fields at one point (a pair of `Fields`) and the body's rates.
     `ps` is `model.robots(params)`; ps[0] also carries the shared parameters.
 
     The contact forces come first: the body's acceleration needs both, and neither depends on w.
     """
     commands = scenario.command(ps[0], clock)
-    touch = _contacts(ps, rows, options, contact)
-    body = model.body_field(ps[0], rows.body, touch[0][1], touch[1][1])
+    touch = touches(ps, rows, options, overrides)
+    body = model.body_field(ps[0], rows.body, touch[0].F, touch[1].F)
     out = []
     for i in range(2):
-        p, st, s = ps[i], rows.robot(i), model.SIGNS[i]
-        in_contact, F, kelvin, _, delta_dot = touch[i]
-        off, aux_off = model.robot_field(p, st, s, F, 0.0, commands[i], options)
-        clamped = jnp.maximum(F, p.F_lim)  # the clamp of the w = 1 field (module docstring)
-        on, aux_on = model.robot_field(p, st, s, F, 1.0, commands[i], options, F_gamma=clamped, F_memory=clamped)
+        p, st, s, c = ps[i], rows.robot(i), model.SIGNS[i], touch[i]
+        off, aux_off = model.robot_field(p, st, s, c.F, 0.0, commands[i], options)
+        clamped = jnp.maximum(c.F, p.F_lim)  # the clamp of the w = 1 field (module docstring)
+        on, aux_on = model.robot_field(p, st, s, c.F, 1.0, commands[i], options, F_gamma=clamped, F_memory=clamped)
         # d/dt (K_g delta + R_g delta_dot) for each field: the body's rows hold no w.
-        sd0 = p.K_g * delta_dot + p.R_g * s * (off["v_r"] - body["v_o"])
-        sd1 = p.K_g * delta_dot + p.R_g * s * (on["v_r"] - body["v_o"])
-        sigma = jnp.where(in_contact, kelvin, 0.0) - p.F_lim
-        out.append(Fields(in_contact, F, p.F_lim, sigma, sd0, sd1, off, on, aux_off, aux_on))
+        sd0 = p.K_g * c.delta_dot + p.R_g * s * (off["v_r"] - body["v_o"])
+        sd1 = p.K_g * c.delta_dot + p.R_g * s * (on["v_r"] - body["v_o"])
+        sigma = jnp.where(c.in_contact, c.kelvin, 0.0) - p.F_lim
+        out.append(Fields(c.in_contact, c.F, p.F_lim, sigma, sd0, sd1, off, on, aux_off, aux_on))
     return tuple(out), body
 
 
@@ -187,20 +217,23 @@ def sliding_weight(f: Fields):
     return jnp.where(sliding, sd0 / jnp.where(sliding, delta, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
 
 
-def weight(f: Fields, sigma_n, h, hold=None, theta=None, free=None):
+def weight(f: Fields, sigma_n, h, switch=None, theta=None, free=None):
     """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
 
     sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,); `theta` the
-    substep start's `fractions` (taken from this point's rates if None); `hold` (B,) holds the
-    switch off (0) or on (1) where it is not -1; where `free` (B,) holds, lambda* is not clipped (the
-    sliding motion continued past its exit, for `step` to locate the exit on the piece's solution).
+    substep start's `fractions` (taken from this point's rates if None); `switch` (B,) holds w at
+    OFF (0) or ON (1) where it is not `Switch.FREE`; where `free` (B,) holds, lambda* is not clipped
+    (the sliding motion continued past its exit, for `step` to locate the exit on the piece's
+    solution).
     """
-    raw = sliding_weight(f)
-    lam_star = jnp.clip(raw, 0.0, 1.0) if free is None else jnp.where(free, raw, jnp.clip(raw, 0.0, 1.0))
+    lam_star_unclipped = sliding_weight(f)
+    lam_star = jnp.clip(lam_star_unclipped, 0.0, 1.0)
+    if free is not None:
+        lam_star = jnp.where(free, lam_star_unclipped, lam_star)
     theta_below, theta_above = fractions(f, sigma_n, h) if theta is None else theta
     lam = jnp.where(sigma_n < 0.0, (1.0 - theta_below) * lam_star, theta_above + (1.0 - theta_above) * lam_star)
-    if hold is not None:
-        lam = jnp.where(hold >= 0, hold.astype(lam.dtype), lam)
+    if switch is not None:
+        lam = jnp.where(switch != Switch.FREE, switch.astype(lam.dtype), lam)
     return jnp.where(f.in_contact, lam, 0.0)
 
 
@@ -220,11 +253,11 @@ def aux(f: Fields, lam) -> model.Aux:
                      v_ref=blend(f.aux_off.v_ref, f.aux_on.v_ref))
 
 
-def _rates(fs, body, sigma_n, h, contact: Contact | None, thetas) -> Rows:
-    holds = (None, None) if contact is None or contact.hold is None else contact.hold
-    frees = (None, None) if contact is None or contact.free is None else contact.free
-    return Rows(tuple(combine(f, weight(f, s_n, h, hold, theta, free))
-                      for f, s_n, hold, theta, free in zip(fs, sigma_n, holds, thetas, frees)), body)
+def _rates(fs, body, sigma_n, h, overrides: Overrides, thetas) -> Rows:
+    """The state's rates at one stage of a piece: each robot's rows weighted by its lambda."""
+    free = (None, None) if overrides.free is None else overrides.free
+    return Rows(tuple(combine(fs[i], weight(fs[i], sigma_n[i], h, overrides.switch[i], thetas[i], free[i]))
+                      for i in range(2)), body)
 
 
 def _axpy(rows: Rows, c, k: Rows) -> Rows:
@@ -232,19 +265,17 @@ def _axpy(rows: Rows, c, k: Rows) -> Rows:
     return jax.tree_util.tree_map(lambda a, b: a + c * b, rows, k)
 
 
-# RK4's tableau: stage j is evaluated at y + A_j h k_{j-1}, t + A_j h, and weighted B_j / 6.
-RK4_A = (0.0, 0.5, 0.5, 1.0)
-RK4_B = (1.0, 2.0, 2.0, 1.0)
-
-
 class Plan(NamedTuple):
-    """What a substep decides at its start: its length and, per robot, its overrides."""
+    """What a piece decides at its start: its length, what it holds fixed, and where it ends."""
 
     h: jax.Array  # (B,) s
-    on: tuple  # contact held on (the substep after an impact)
-    off: tuple  # contact held off (the substep that ends at an impact)
-    hold: tuple  # switch held: 0 off, 1 on, -1 not held (the substep that ends where F reaches F_lim)
-    impact: tuple  # this substep ends at the robot's impact
+    overrides: Overrides  # contact and switch held through the piece (`free` is decided after the plan)
+    at_switch: tuple  # per robot (B,) bool: the piece ends where the robot's force reaches F_lim
+
+    @property
+    def impact(self) -> tuple:
+        """Per robot: the piece ends at its impact (the contact is held off exactly up to it)."""
+        return self.overrides.apart
 
 
 def impact_time(p, st, s, a_r_off, a_o):
@@ -266,8 +297,8 @@ def impact_time(p, st, s, a_r_off, a_o):
 
 def switching_time(f: Fields, shortest):
     """Time to one robot's next switching event while in contact (inf if none), first order, and
-    the switch's hold until then: off (0) when the force rises to F_lim, on (1) when it falls to it,
-    -1 when the Kelvin-Voigt force reaches 0 (below F_lim, where the w = 0 rate applies). A force
+    the switch's hold until then: OFF when the force rises to F_lim, ON when it falls to it, FREE
+    when the Kelvin-Voigt force reaches 0 (below F_lim, where the w = 0 rate applies). A force
     already within `shortest` of F_lim is taken as on the surface (sliding there)."""
     below = f.in_contact & (f.sigma < 0.0) & (f.sd0 > 0.0)
     above = f.in_contact & (f.sigma > 0.0) & (f.sd1 < 0.0)
@@ -280,29 +311,34 @@ def switching_time(f: Fields, shortest):
     tau0 = jnp.where(crossing, jnp.abs(kelvin) / jnp.where(crossing, jnp.abs(f.sd0), 1.0), jnp.inf)
     tau0 = jnp.where(tau0 > shortest, tau0, jnp.inf)
     first = jnp.minimum(tau, tau0)
-    hold = jnp.where(tau <= tau0, jnp.where(above, 1, 0), -1)
-    return first, jnp.where(jnp.isfinite(first), hold, -1)
+    switch = jnp.where(tau <= tau0, jnp.where(above, Switch.ON, Switch.OFF), Switch.FREE)
+    return first, jnp.where(jnp.isfinite(first), switch, Switch.FREE)
 
 
-def plan(ps, rows: Rows, fs, body, remaining, on, dt, options, last, kept) -> Plan:
-    """The next substep: up to the first event of either robot within `remaining` (all of it for
-    the `last` piece a step has). `kept` (per robot) holds the switch of a robot whose sliding has
-    just ended: off (0) below the surface, on (1) above it, -1 for none."""
-    times, holds, impacts = [], [], []
+def plan(ps, rows: Rows, fs, body, remaining, touching, dt, options, last, kept) -> Plan:
+    """The next piece: up to the first event of either robot within `remaining` (all of it for
+    the `last` piece a step has). `touching` (per robot) holds the contact of robots that have just
+    hit; `kept` (per robot) the switch of a robot whose sliding has just ended: OFF below the surface,
+    ON above it, FREE for none."""
+    times, switches, impacts = [], [], []
     for i in range(2):
-        tau, hold = switching_time(fs[i], SHORTEST_EVENT * dt)
+        tau, switch = switching_time(fs[i], SHORTEST_EVENT * dt)
         if options.contact == "bilateral":  # always in contact: no impacts
             hit = jnp.full_like(tau, jnp.inf)
         else:
-            hit = jnp.where(on[i], jnp.inf, impact_time(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], body["v_o"]))
+            hit = jnp.where(touching[i], jnp.inf,
+                            impact_time(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], body["v_o"]))
         times.append(jnp.minimum(tau, hit))
-        holds.append(jnp.where(hit < tau, -1, hold))
+        switches.append(jnp.where(hit < tau, Switch.FREE, switch))
         impacts.append(hit <= tau)
     h = jnp.where(last, remaining, jnp.minimum(jnp.minimum(*times), remaining))
     first = tuple((times[i] <= h) & (times[i] <= remaining) & ~last for i in range(2))  # ties: both at once
-    impact = tuple(first[i] & impacts[i] for i in range(2))
-    hold = tuple(jnp.where(kept[i] >= 0, kept[i], jnp.where(first[i], holds[i], -1)) for i in range(2))
-    return Plan(h, on, impact, hold, impact)
+    apart = tuple(first[i] & impacts[i] for i in range(2))
+    held = tuple(kept[i] != Switch.FREE for i in range(2))
+    # A switch kept from a sliding exit is held through the piece, but the piece does not end there.
+    switch = tuple(jnp.where(held[i], kept[i], jnp.where(first[i], switches[i], Switch.FREE)) for i in range(2))
+    at_switch = tuple(~held[i] & first[i] & (switches[i] != Switch.FREE) for i in range(2))
+    return Plan(h, Overrides(touching, apart, switch), at_switch)
 
 
 def crossing(sigma_n, rate, sigma_end, h):
@@ -335,96 +371,176 @@ class Held(NamedTuple):
     rate: jax.Array  # (B,) N/s, the start's weighted field's
 
 
-def trial_crossing(g: Held, kelvin_end, F_lim, h, fresh):
-    """One robot's event found on a piece's own solution: (found, time, hold). The force crossed
-    F_lim while the switch was held (hold 0 from below, 1 from above), or the Kelvin-Voigt force
-    crossed 0 while touching (hold -1); the time is the first of them. Nothing is found where
-    `fresh` is False (the step's last piece)."""
+class Slide(NamedTuple):
+    """One robot's sliding through a piece, for `sliding_exit`."""
+
+    free: jax.Array  # (B,) bool: it slides through the piece with lambda* unclipped
+    start: jax.Array  # (B,) lambda* (unclipped) at the piece's start
+    end: jax.Array  # (B,) lambda* (unclipped) at its last stage
+
+
+class Event(NamedTuple):
+    """An event one robot's piece reveals on its own solution."""
+
+    found: jax.Array  # (B,) bool
+    time: jax.Array  # (B,) s into the piece (inf where not found)
+    switch: jax.Array  # (B,) `Switch`: held after it (a crossing of F_lim is on the surface unless FREE)
+
+
+def trial_crossing(g: Held, kelvin_end, F_lim, h, fresh) -> Event:
+    """One robot's event found on a piece's own solution. The force crossed F_lim while the switch
+    was held (OFF from below, ON from above), or the Kelvin-Voigt force crossed 0 while touching
+    (FREE); the time is the first of them. Nothing is found where `fresh` is False (the step's last
+    piece)."""
     sigma_end = kelvin_end - F_lim
     up, down = g.off & (sigma_end > 0.0), g.on & (sigma_end < 0.0)
     kelvin = g.sigma_n + F_lim
-    kink = g.in_contact & (F_lim > 0.0) & (kelvin * kelvin_end < 0.0)
+    through_zero = g.in_contact & (F_lim > 0.0) & (kelvin * kelvin_end < 0.0)
     tau = jnp.where(up, crossing(g.sigma_n, g.sd0, sigma_end, h),
                     jnp.where(down, crossing(-g.sigma_n, -g.sd1, -sigma_end, h), jnp.inf))
     sign = jnp.where(kelvin > 0.0, -1.0, 1.0)  # the Kelvin-Voigt force rising through 0 or falling
-    tau0 = jnp.where(kink, crossing(sign * kelvin, sign * g.rate, sign * kelvin_end, h), jnp.inf)
-    hold = jnp.where(tau0 < tau, -1, jnp.where(g.off, 0, 1))
-    return fresh & (up | down | kink), jnp.minimum(tau, tau0), hold
+    tau0 = jnp.where(through_zero, crossing(sign * kelvin, sign * g.rate, sign * kelvin_end, h), jnp.inf)
+    switch = jnp.where(tau0 < tau, Switch.FREE, jnp.where(g.off, Switch.OFF, Switch.ON))
+    return Event(fresh & (up | down | through_zero), jnp.minimum(tau, tau0), switch)
 
 
-def sliding_exit(free, start, end, h):
-    """One robot's sliding exit found on a piece it slid through (`free`): (found, time, hold).
+def sliding_exit(slide: Slide, h) -> Event:
+    """One robot's sliding exit found on a piece it slid through (`slide.free`).
     lambda* (unclipped) left [0, 1] between its values at the piece's start and at the last stage:
-    below 0 the force leaves the surface downwards (switch off after it), above 1 upwards (on).
+    below 0 the force leaves the surface downwards (switch OFF after it), above 1 upwards (ON).
     The time is the linear interpolation of lambda*; its error, O(h^2), moves the exit's kink by
     that much, which changes the step by O(h^4)."""
-    down, up = free & (end < 0.0), free & (end > 1.0)
+    start, end = slide.start, slide.end
+    down, up = slide.free & (end < 0.0), slide.free & (end > 1.0)
     denominator = jnp.where(down, start - end, jnp.where(up, end - start, 1.0))
     share = jnp.where(down, start, 1.0 - start) / jnp.where(down | up, denominator, 1.0)
-    return down | up, jnp.where(down | up, jnp.clip(share, 0.0, 1.0) * h, jnp.inf), jnp.where(up, 1, 0)
+    return Event(down | up, jnp.where(down | up, jnp.clip(share, 0.0, 1.0) * h, jnp.inf),
+                 jnp.where(up, Switch.ON, Switch.OFF))
 
 
-def substep(ps, rows: Rows, clock: Clock, remaining, on, kept, dt, scenario, options, last=False):
+def first_event(crossed: Event, exited: Event) -> Event:
+    """One robot's earlier event of the two a piece can reveal (an exit wins where it is strictly first)."""
+    return Event(crossed.found | exited.found, jnp.minimum(jnp.where(crossed.found, crossed.time, jnp.inf), exited.time),
+                 jnp.where(exited.found & (exited.time < crossed.time), exited.switch, crossed.switch))
+
+
+class Piece(NamedTuple):
+    """What `substep` gives `step`: a piece run to the end of its plan."""
+
+    rows: Rows  # the state at the plan's end
+    plan: Plan
+    signals: model.Aux  # at the piece's start, each (2, B)
+    held: tuple  # per robot, `Held`
+    stages: tuple  # (k1, (k2, k3, k4) stacked): the four stages' rates, for `dense`
+    slides: tuple  # per robot, `Slide`
+
+
+def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenario, options, last=False) -> Piece:
     """RK4 over the next piece of a step: up to the first event predicted at its start, or the rest
-    of the step (`remaining`, per sample). `on` holds the contact of robots that have just hit,
+    of the step (`remaining`, per sample). `touching` holds the contact of robots that have just hit,
     `kept` the switch of robots whose sliding has just ended (`plan`).
 
-    The first stage is the substep's start: its fields give the plan (length and overrides) and
+    The first stage is the piece's start: its fields give the plan (length and overrides) and
     the fractions theta for all four. A robot sliding at the start (on the surface, 0 < lambda* < 1)
     slides through the whole piece, lambda* unclipped, unless it is the step's last piece.
-    Returns the new state, the plan, the signals at the start, each robot's `Held`, the four
-    stages' rates (for `dense`), and per robot whether it slides through the piece with its
-    unclipped lambda* at the first and the last stage (for `sliding_exit`).
     """
-    # Every stage's theta uses sigma at the substep start (step 2 of the weight): the contact alone.
-    no = jnp.zeros_like(on[0])
-    sigma_n = tuple(jnp.where(c[0], c[2], 0.0) - p.F_lim for c, p in zip(_contacts(ps, rows, options, Contact(on, (no, no))), ps))
-    # The first stage, at the substep's start: its fields give the plan (length and overrides), the
+    apart = (jnp.zeros_like(touching[0]),) * 2
+    # sigma at the piece's start, which every stage's theta uses (step 2 of the weight): with the
+    # contact held on for a robot that has just hit, and no contact held off, since the impact a
+    # piece may end at is not known before its plan.
+    sigma_n = tuple(jnp.where(c.in_contact, c.kelvin, 0.0) - p.F_lim
+                    for c, p in zip(touches(ps, rows, options, Overrides(touching, apart)), ps))
+    # The first stage, at the piece's start: its fields give the plan (length and overrides), the
     # fractions theta that serve all four stages, and the signals. Outside the stage loop, so the
-    # other three stages do not compute (and discard) them.
-    unheld = jnp.full(no.shape, -1)
-    fs, body = fields(ps, rows, clock, Contact(on, (no, no), (unheld, unheld)), scenario, options)
-    part = plan(ps, rows, fs, body, remaining, on, dt, options, last, kept)
-    thetas = tuple(fractions(f, s_n, part.h) for f, s_n in zip(fs, sigma_n))
-    raw = tuple(sliding_weight(f) for f in fs)
+    # other three stages do not compute (and discard) them. No switch is held yet: the plan decides.
+    free_switch = (jnp.full(touching[0].shape, Switch.FREE),) * 2
+    fs, body = fields(ps, rows, clock, Overrides(touching, apart, free_switch), scenario, options)
+    piece = plan(ps, rows, fs, body, remaining, touching, dt, options, last, kept)
+    held_switch = piece.overrides.switch
+    thetas = tuple(fractions(f, s_n, piece.h) for f, s_n in zip(fs, sigma_n))
+    lam_star = tuple(sliding_weight(f) for f in fs)
     # 0 < lambda* < 1 only where the two rates differ (`sliding_weight` is 0 or 1 elsewhere).
-    free = tuple(f.in_contact & (hold < 0) & (r > 0.0) & (r < 1.0) & ~last
+    free = tuple(f.in_contact & (switch == Switch.FREE) & (r > 0.0) & (r < 1.0) & ~last
                  & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
-                 for f, r, s_n, hold, (theta_below, theta_above) in zip(fs, raw, sigma_n, part.hold, thetas))
-    contact = Contact(part.on, part.off, part.hold, free)
-    k = _rates(fs, body, sigma_n, part.h, contact, thetas)
-    weights = tuple(weight(f, s_n, part.h, hold, theta) for f, s_n, hold, theta in zip(fs, sigma_n, part.hold, thetas))
+                 for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas))
+    overrides = piece.overrides._replace(free=free)
+    k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
+    # The start's weights without `free`: lambda* clipped, so the recorded signals and `Held.rate`
+    # are the clipped sliding motion's, where the stages' rates continue it unclipped.
+    weights = tuple(weight(f, s_n, piece.h, switch, theta)
+                    for f, s_n, switch, theta in zip(fs, sigma_n, held_switch, thetas))
     signals = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights)))))
 
     def stage(carry, tableau):
         k_prev, total = carry
         a, b = tableau
-        fs, body = fields(ps, _axpy(rows, a * part.h, k_prev), clock.advance(a * part.h), contact, scenario, options)
-        k = _rates(fs, body, sigma_n, part.h, contact, thetas)
-        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (k, jnp.stack([sliding_weight(f) for f in fs]))
+        fs, body = fields(ps, _axpy(rows, a * piece.h, k_prev), clock.advance(a * piece.h), overrides, scenario,
+                          options)
+        k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
+        lam_star = jnp.stack([sliding_weight(f) for f in fs])
+        return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (k, lam_star)
 
     # The other three stages as a `lax.scan` over the tableau: one stage body for XLA to compile
-    # instead of three copies.
-    tableau = (jnp.asarray(RK4_A[1:], remaining.dtype), jnp.asarray(RK4_B[1:], remaining.dtype))
-    (_, total), (ks, raws) = jax.lax.scan(stage, (k, k), tableau)
+    # instead of three copies. The first stage's weight b_1 = 1 is the `total` it starts from.
+    tableau = (jnp.asarray(RK4.a[1:], remaining.dtype), jnp.asarray(RK4.b[1:], remaining.dtype))
+    (_, total), (ks, lam_stars) = jax.lax.scan(stage, (k, k), tableau)
     # Per robot, the switch held off (on) through the whole piece below (above) the surface: where
     # `step` looks at the piece's end for a crossing its start did not predict.
     held = []
-    for f, s_n, hold, (theta_below, theta_above), lam in zip(fs, sigma_n, part.hold, thetas, weights):
-        off = f.in_contact & (s_n < 0.0) & ((hold == 0) | ((hold < 0) & (theta_below >= 1.0)))
-        on_ = f.in_contact & (s_n > 0.0) & ((hold == 1) | ((hold < 0) & (theta_above >= 1.0)))
-        held.append(Held(off, on_, s_n, f.sd0, f.sd1, f.in_contact, f.sd0 + lam * (f.sd1 - f.sd0)))
-    slides = tuple((fr, r, raws[-1, i]) for i, (fr, r) in enumerate(zip(free, raw)))
-    return _axpy(rows, part.h / 6, total), part, signals, tuple(held), (k, ks), slides
+    for f, s_n, switch, (theta_below, theta_above), lam in zip(fs, sigma_n, held_switch, thetas, weights):
+        free_here = switch == Switch.FREE
+        off = f.in_contact & (s_n < 0.0) & ((switch == Switch.OFF) | (free_here & (theta_below >= 1.0)))
+        on = f.in_contact & (s_n > 0.0) & ((switch == Switch.ON) | (free_here & (theta_above >= 1.0)))
+        held.append(Held(off, on, s_n, f.sd0, f.sd1, f.in_contact, f.sd0 + lam * (f.sd1 - f.sd0)))
+    slides = tuple(Slide(free[i], lam_star[i], lam_stars[-1, i]) for i in range(2))
+    end = _axpy(rows, piece.h / RK4.denominator, total)
+    return Piece(end, piece, signals, tuple(held), (k, ks), slides)
 
 
-def dense(rows, h, ks, theta):
-    """RK4's continuous extension (third order) at theta of the piece: rows + h sum b_i(theta) k_i."""
-    k1, rest = ks
-    b1 = theta - 1.5 * theta**2 + 2.0 / 3.0 * theta**3
-    b23 = theta**2 - 2.0 / 3.0 * theta**3
-    b4 = -0.5 * theta**2 + 2.0 / 3.0 * theta**3
-    return jax.tree_util.tree_map(lambda y, a, k: y + h * (b1 * a + b23 * (k[0] + k[1]) + b4 * k[2]), rows, k1, rest)
+def dense(rows, h, stages, theta):
+    """RK4's continuous extension (third order) at theta of the piece: rows + h sum_j b_j(theta) k_j."""
+    groups = [(RK4.polynomial(row, theta), members) for row, members in RK4.dense_groups()]
+
+    def extend(y, k1, rest):
+        k = (k1, *rest)
+        terms = [b * _sum(k, members) for b, members in groups]
+        return y + h * sum(terms[1:], terms[0])
+
+    k1, rest = stages
+    return jax.tree_util.tree_map(extend, rows, k1, rest)
+
+
+def _sum(k, members):
+    """k[members[0]] + k[members[1]] + ..., in order."""
+    total = k[members[0]]
+    for j in members[1:]:
+        total = total + k[j]
+    return total
+
+
+def as_buffers(values, fallback):
+    """`values`, materialised once as buffers that their consumers read.
+
+    Without this, XLA fuses the plan's decision (and the roots it stems from) into each of its many
+    consumers and recomputes it there. A `lax.cond` whose outputs are buffers stops that; its
+    predicate holds for every state (a piece's planned length is never negative), and `fallback`
+    (same structure) is never taken. `lax.optimization_barrier` would state the intent better, but
+    measured slower in paired runs (docs/speed.md, "What was tried").
+    """
+    h = values[0]
+    return jax.lax.cond((h >= 0.0).all(), lambda pair: pair[0], lambda pair: pair[1], (values, fallback))
+
+
+class Progress(NamedTuple):
+    """The carry through a step's pieces."""
+
+    rows: Rows  # the state at the end of the pieces so far
+    remaining: jax.Array  # (B,) of the step, s
+    offset: jax.Array  # (B,) into the step, s
+    touching: tuple  # per robot (B,) bool: it hit at the last piece's end, so its contact is held on
+    kept: tuple  # per robot (B,) `Switch`: held through the next piece after a sliding exit
+    F_end: jax.Array  # (2, B) the contact forces at the last piece's end, N
+    signals: model.Aux  # at the step's start, each (2, B)
 
 
 def step(params, y, t, dt, scenario, options):
@@ -437,59 +553,57 @@ def step(params, y, t, dt, scenario, options):
     rows = Rows.of(y)
     ps = model.robots(params)
     clock = Clock.at(t)
-    no = jnp.zeros(y.shape[1:], bool)
+    false = jnp.zeros(y.shape[1:], bool)
     remaining = jnp.full(y.shape[1:], dt, y.dtype)
-    F0 = jnp.stack([c[1] for c in _contacts(ps, rows, options)])
 
-    def run(carry, j):
-        rows, remaining, offset, on, kept, F_end, signals = carry
+    def run(carry: Progress, j):
         last = j == PIECES - 1
-        new, part, start_signals, held, ks, slides = substep(ps, rows, clock.advance(offset), remaining, on, kept, dt,
-                                                             scenario, options, last=last)
-        contact = Contact(part.on, part.off, part.hold)
-        touch = _contacts(ps, new, options, contact)
+        piece = substep(ps, carry.rows, clock.advance(carry.offset), carry.remaining, carry.touching, carry.kept, dt,
+                        scenario, options, last=last)
+        planned = piece.plan
+        # The contact at the piece's end and at a cut inside it, under the piece's own contact
+        # overrides (a robot that hits at the end is still apart there).
+        touch = touches(ps, piece.rows, options, planned.overrides)
         # The piece as a trial: cut at a crossing it held the switch through, or where a robot's
         # sliding ended (module docstring).
-        crossings = tuple(trial_crossing(g, c[2], p.F_lim, part.h, ~last) for g, c, p in zip(held, touch, ps))
-        exits = tuple(sliding_exit(*slide, part.h) for slide in slides)
-        found = tuple((fc | fe, jnp.minimum(jnp.where(fc, tc, jnp.inf), te), jnp.where(fe & (te < tc), he, hc))
-                      for (fc, tc, hc), (fe, te, he) in zip(crossings, exits))
-        flag = found[0][0] | found[1][0]
-        tau = jnp.minimum(jnp.where(found[0][0], found[0][1], jnp.inf), jnp.where(found[1][0], found[1][1], jnp.inf))
-        h = jnp.where(flag, tau, part.h)
-        theta = h / jnp.where(part.h > 0.0, part.h, 1.0)
-        # A cond's outputs are buffers: their consumers read the decision instead of each fusing, and
-        # recomputing, the plan and the roots it stems from. The predicate holds for every state.
-        decided = (h, theta, flag, tau, found)
-        h, theta, flag, tau, found = jax.lax.cond(
-            (part.h >= 0.0).all(), lambda a: a[0], lambda a: a[1],
-            (decided, (part.h, jnp.ones_like(theta), jnp.zeros_like(flag), part.h, found)))
-        cut = dense(rows, part.h, ks, theta)
-        end = jnp.stack([c[1] for c in _contacts(ps, cut, options, contact)])
-        signals = jax.tree_util.tree_map(lambda s, n: jnp.where(offset == 0.0, n, s), signals, start_signals)
-        impact = tuple(i & ~flag for i in part.impact)
-        at_tau = [f & (t_ <= tau) for f, t_, _ in found]
-        # A piece ends on the surface where it is cut at a crossing or a sliding exit, or where its
-        # plan ended it at a switch (a hold kept from a sliding exit is not one).
-        surface = jnp.stack([jnp.where(flag, a & (hd >= 0), (hold >= 0) & (k_in < 0))
-                             for a, (_, _, hd), hold, k_in in zip(at_tau, found, part.hold, kept)])
+        crossings = tuple(trial_crossing(g, c.kelvin, p.F_lim, planned.h, ~last) for g, c, p in zip(piece.held, touch, ps))
+        exits = tuple(sliding_exit(slide, planned.h) for slide in piece.slides)
+        events = tuple(map(first_event, crossings, exits))
+        cut = events[0].found | events[1].found
+        tau = jnp.minimum(jnp.where(events[0].found, events[0].time, jnp.inf),
+                          jnp.where(events[1].found, events[1].time, jnp.inf))
+        h = jnp.where(cut, tau, planned.h)
+        theta = h / jnp.where(planned.h > 0.0, planned.h, 1.0)
+        h, theta, cut, tau, events = as_buffers(
+            (h, theta, cut, tau, events), (planned.h, jnp.ones_like(theta), jnp.zeros_like(cut), planned.h, events))
+        rows_cut = dense(carry.rows, planned.h, piece.stages, theta)
+        F_end = forces(touches(ps, rows_cut, options, planned.overrides))
+        signals = jax.tree_util.tree_map(lambda s, n: jnp.where(carry.offset == 0.0, n, s), carry.signals,
+                                         piece.signals)
+        impact = tuple(i & ~cut for i in planned.impact)
+        # A piece ends on the surface where it is cut at a crossing of F_lim or a sliding exit, or
+        # where its plan ended it at a switch.
+        surface = jnp.stack([jnp.where(cut, e.found & (e.time <= tau) & (e.switch != Switch.FREE), at_switch)
+                             for e, at_switch in zip(events, planned.at_switch)])
         # The next piece holds the switch of a robot whose sliding ended here, as it left the surface.
-        kept = tuple(jnp.where(flag & fe & (te <= tau), he, -1) for fe, te, he in exits)
-        carry = (cut, remaining - h, offset + h, impact, kept, end, signals)
-        return carry, (h, start_signals.F, end, surface, jnp.stack(impact))
+        kept = tuple(jnp.where(cut & x.found & (x.time <= tau), x.switch, Switch.FREE) for x in exits)
+        carry = Progress(rows_cut, carry.remaining - h, carry.offset + h, impact, kept, F_end, signals)
+        return carry, (h, piece.signals.F, F_end, surface, jnp.stack(impact))
 
-    def piece(carry, j):
+    def skip(carry: Progress, j):
+        nothing = jnp.zeros_like(carry.F_end, bool)
+        return carry, (0.0 * carry.remaining, carry.F_end, carry.F_end, nothing, nothing)
+
+    def piece(carry: Progress, j):
         # One predicate for the whole batch; under `vmap` the cond becomes a select and both run.
-        return jax.lax.cond((carry[1] > 0.0).any(), run,
-                            lambda carry, _: (carry, (0.0 * carry[1], carry[5], carry[5], jnp.zeros_like(carry[5], bool),
-                                                      jnp.zeros_like(carry[5], bool))),
-                            carry, j)
+        return jax.lax.cond((carry.remaining > 0.0).any(), run, skip, carry, j)
 
     signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
-    unheld = jnp.full(y.shape[1:], -1)
-    carry = (rows, remaining, 0.0 * remaining, (no, no), (unheld, unheld), F0, signals0)
-    (new, _, _, _, _, _, signals), (h, starts, ends, surface, impact) = jax.lax.scan(piece, carry, jnp.arange(PIECES))
-    return new.array(), signals, Path(h / dt, starts, ends, surface, impact)
+    free_switch = jnp.full(y.shape[1:], Switch.FREE)
+    F0 = forces(touches(ps, rows, options))
+    start = Progress(rows, remaining, 0.0 * remaining, (false, false), (free_switch, free_switch), F0, signals0)
+    end, (h, starts, ends, surface, impact) = jax.lax.scan(piece, start, jnp.arange(PIECES))
+    return end.rows.array(), end.signals, Path(h / dt, starts, ends, surface, impact)
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:
@@ -506,7 +620,8 @@ class Filippov(Integrator):
     """The sliding-mode step for the hard switch: the dt -> 0 limit at dt = 1e-3 (docs/model.md)."""
 
     name = "filippov"
-    description = "the sliding-mode step for the hard switch, the default for it: its answer is the dt -> 0 limit at dt = 1e-3"
+    description = ("the sliding-mode step for the hard switch, the default for it: its answer is the dt -> 0 limit "
+                   "at dt = 1e-3")
     switches = ("hard",)
     default_for = ("hard",)
     converged_dt = {

@@ -10,16 +10,17 @@ import jax.numpy as jnp
 
 from coopjax import model, surrogates
 from coopjax.integration.base import Integrator, Path, register
+from coopjax.integration.tableau import RK4
 from coopjax.scenarios import Clock
 
 
 def rk4(f, t, y, dt, k1=None):
-    """One classical RK4 step of dy/dt = f(t, y); pass k1 = f(t, y) if already known."""
-    k1 = f(t, y) if k1 is None else k1
-    k2 = f(t + dt / 2, y + (dt / 2) * k1)
-    k3 = f(t + dt / 2, y + (dt / 2) * k2)
-    k4 = f(t + dt, y + dt * k3)
-    return y + (dt / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
+    """One classical RK4 step of dy/dt = f(t, y) (`tableau.RK4`); pass k1 = f(t, y) if already known."""
+    k = [f(t, y) if k1 is None else k1]
+    for a in RK4.a[1:]:
+        k.append(f(t + a * dt, y + (a * dt) * k[-1]))
+    weighted = [b * kj for b, kj in zip(RK4.b, k)]
+    return y + (dt / RK4.denominator) * sum(weighted[1:], weighted[0])
 
 
 def contact_forces(params, y, options):
