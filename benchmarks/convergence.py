@@ -271,7 +271,7 @@ def step_check_study(n: int, dt: float = 1e-3, ref_dt: float = 1e-4, log=print) 
     vary = {g: f"loguniform:{a}:{b}" for g, (a, b) in STUDY_BOX.items()} | {"M_b": "loguniform:0.5:5"}
     seconds, tables = {}, {}
     for checked in (False, True):
-        spec = sweeps.make_spec("carry", n, vary, {}, 0, dt=dt, check_step=checked)
+        spec = sweeps.make_spec("carry", n=n, vary=vary, fixed={}, seed=0, dt=dt, check_step=checked)
         start = time.perf_counter()
         tables[checked] = sweeps.run(spec)
         seconds[checked] = time.perf_counter() - start
@@ -280,7 +280,7 @@ def step_check_study(n: int, dt: float = 1e-3, ref_dt: float = 1e-4, log=print) 
     passed = np.asarray(cols["status"]) == "ok"
     # Every row at the limit: what the check flags, and what it lets through.
     table = {k: np.asarray(cols[k]) for k in (*STUDY_BOX, "M_b")}
-    limit = {k: np.asarray(v) for k, v in sweeps.run(sweeps.make_spec("carry", None, {}, {}, 0, table, dt=ref_dt)).items()}
+    limit = {k: np.asarray(v) for k, v in sweeps.run(sweeps.make_spec("carry", n=None, vary={}, fixed={}, seed=0, table=table, dt=ref_dt)).items()}
     wrong_all = _wrong({k: np.asarray(cols[k]) for k in TOLERANCE}, limit)
     wrong = wrong_all[flagged]
     error = np.asarray(cols["step_error"], float)

@@ -22,16 +22,15 @@ jax.config.update("jax_num_cpu_devices", devices)
 jax.config.update("jax_enable_x64", x64)
 import numpy as np
 from coopjax import sweeps
-spec = sweeps.make_spec("carry", B, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.7"}, integrator=integrator)
-runner = sweeps._Runner(spec, jax.local_devices())
-values = sweeps.draw(spec.distributions(), np.arange(B), 0)
-t0 = time.perf_counter(); runner(values); first = time.perf_counter() - t0
+spec = sweeps.make_spec("carry", n=B, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.7"}, integrator=integrator)
+values = sweeps.sample_values(spec)
+t0 = time.perf_counter(); sweeps.evaluate(spec, values); first = time.perf_counter() - t0
 times = []
 for _ in range(repeats):
-    t0 = time.perf_counter(); runner(values); times.append(time.perf_counter() - t0)
+    t0 = time.perf_counter(); sweeps.evaluate(spec, values); times.append(time.perf_counter() - t0)
 run = statistics.median(times)
 print(json.dumps(dict(devices=devices, x64=x64, integrator=integrator, first_call_s=first, compile_s=first - run, run_s=run,
-                      steps_per_s=B * runner.config.n_steps / run, jax=jax.__version__)))
+                      steps_per_s=B * spec.config.n_steps / run, jax=jax.__version__)))
 """
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import errno
 import glob
 import json
 import os
@@ -109,10 +108,6 @@ class Outputs:
             if tmp in IN_FLIGHT:
                 _discard(tmp)
         return False
-
-
-def is_full_disk(error: BaseException) -> bool:
-    return isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from coopjax.errors import InputError
 from coopjax.io import atomic_path
 from coopjax.params import PARAMETERS, split_name
 from coopjax.stability import rk4_amplification
+from coopjax.status import Status
 from coopjax.sweeps import column_units
 
 
@@ -89,7 +90,9 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     """Scatter of y against x for the trusted samples; the flagged ones (status not ok) in a strip of
     their own below, never as if they had a value; histograms of the grip metrics."""
     plt = _pyplot()
-    ok = np.asarray(columns["finite"]) > 0.5
+    status = np.asarray(columns["status"]) if "status" in columns else np.where(
+        np.asarray(columns["finite"]) > 0.5, Status.OK.label, Status.DIVERGED.label)
+    ok = status == Status.OK.label
     xs, ys = np.asarray(columns[x], float), np.asarray(columns[y], float)
     shown = ok & np.isfinite(xs) & np.isfinite(ys)
     metrics = [m for m in ("min_grip", "peak_grip", "rms_lag") if m in columns]
@@ -114,7 +117,6 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     ax.set_title(f"{y} against {x}: {int(shown.sum())} trusted samples of {len(xs)}"
                  + (f"; {int((~ok).sum())} flagged (strip below)" if (~ok).any() else ""))
     strip = fig.add_subplot(grid[1, :], sharex=ax)
-    status = np.asarray(columns["status"]) if "status" in columns else np.where(ok, "ok", "diverged")
     for k, s in enumerate(sorted(set(status[~ok].tolist()))):
         mask = (status == s) & ~ok
         strip.scatter(xs[mask], np.full(mask.sum(), k), marker="x", s=14, color=f"C{k + 1}", label=f"{s} ({mask.sum()})")

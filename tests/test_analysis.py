@@ -2,7 +2,6 @@
 poles against an independent eigen-decomposition and the dt check, and a linearisation at a
 simulated state against a small-perturbation simulation of the nonlinear model."""
 
-import dataclasses
 import json
 
 import jax

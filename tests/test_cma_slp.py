@@ -4,7 +4,7 @@ enter CMA-ES's population, and a resumed run replays to the same state."""
 
 import numpy as np
 import pytest
-from test_screen_slp import CB2_AT, CB2_MIN, PROBLEM, Analytic, cb2, solve
+from test_screen_slp import CB2_AT, CB2_MIN, Analytic, cb2, solve
 
 from tuning import driver
 from tuning.tuners.cma_slp import CMAESPolished

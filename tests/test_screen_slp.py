@@ -5,7 +5,6 @@ model, where the grip constraint is active and where it is not."""
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -56,9 +55,9 @@ class Analytic:
         zeros = np.zeros((C, M))
         jac = None
         if query.derivative == "jacobian":
-            jac = {"peak": J_peak, "lag_mm": np.zeros_like(J_peak), "c": np.zeros_like(J_peak), "min_swi": J_swi,
+            jac = {"peak": J_peak, "rms_lag": np.zeros_like(J_peak), "c": np.zeros_like(J_peak), "min_swi": J_swi,
                    "f": J_peak[:, 0]}
-        return Evaluation(f=peak.max(1), c=zeros, peak=peak, lag_mm=zeros, min_grip=np.full((C, M), 10.0), finite=finite,
+        return Evaluation(f=peak.max(1), c=zeros, peak=peak, rms_lag=zeros, min_grip=np.full((C, M), 10.0), valid=finite,
                           holds=finite & (swi > 0).all(1), jacobian=jac, min_swi=swi)
 
 
@@ -198,7 +197,7 @@ def test_the_jacobians_are_the_central_differences_of_the_hard_model():
     shifted = np.concatenate([THETA + h * e for e in np.eye(n)] + [THETA - h * e for e in np.eye(n)])
     values = evaluate(Query(shifted, masses))
     K = len(THETA)
-    for name, key in (("peak", "peak"), ("lag_mm", "lag_mm"), ("c", "c"), ("min_swi", "min_swi")):
+    for name, key in (("peak", "peak"), ("rms_lag", "rms_lag"), ("c", "c"), ("min_swi", "min_swi")):
         v = getattr(values, key).reshape(2, n, K, len(masses))
         fd = np.moveaxis((v[0] - v[1]) / (2 * h), 0, -1)  # (K, M, n)
         scale = np.abs(fd).max() + 1e-12

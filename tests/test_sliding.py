@@ -240,7 +240,7 @@ def test_the_end_of_a_sliding_mode_is_located_at_the_true_time():
 
     from coopjax import model
     from coopjax.integration import filippov
-    from coopjax.scenarios import Clock, get
+    from coopjax.scenarios import get
     from tests import reference_model as ref
 
     dt, k = 1e-3, 2448  # the README's example (Table 1 at 1 kg): robot R's sliding ends at t = 2.4488 s
@@ -255,7 +255,7 @@ def test_the_end_of_a_sliding_mode_is_located_at_the_true_time():
 
     def sliding(t, z):
         """Both robots on their surfaces, each with its Filippov weight; (rates, R's weight)."""
-        x_o, v_o = z[18], z[19]
+        v_o = z[19]
         dz, weights = np.zeros(20), []
         for i, s in enumerate((1.0, -1.0)):
             yi = z[9 * i:9 * i + 9]

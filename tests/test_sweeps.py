@@ -48,7 +48,7 @@ def assert_same_table(a, b):
 
 @pytest.mark.slow
 def test_rows_equal_single_simulate_runs():
-    spec = sweeps.make_spec("paper", 12, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, {"G_e": 500.0}, T=1.0)
+    spec = sweeps.make_spec("paper", n=12, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, fixed={"G_e": 500.0}, T=1.0)
     table = sweeps.run(spec, chunk=5)
     for i in range(12):
         single = cj.simulate(cj.make_params(M_b=table["M_b"][i], K_GP=table["K_GP"][i], G_e=500.0), "paper", T=1.0)
@@ -57,7 +57,7 @@ def test_rows_equal_single_simulate_runs():
 
 
 def test_draws_follow_their_distributions_and_grids_are_factorial():
-    spec = sweeps.make_spec("carry", None, {"K_GP": "grid:0.1:0.5:3", "tau": "grid:1:2:2", "M_b": "choice:1,2"})
+    spec = sweeps.make_spec("carry", n=None, vary={"K_GP": "grid:0.1:0.5:3", "tau": "grid:1:2:2", "M_b": "choice:1,2"})
     assert spec.n == 6
     d = sweeps.draw(spec.distributions(), np.arange(6), 0)
     np.testing.assert_allclose(d["K_GP"], [0.1, 0.1, 0.3, 0.3, 0.5, 0.5])
@@ -71,7 +71,7 @@ def test_draws_follow_their_distributions_and_grids_are_factorial():
 
 @pytest.mark.slow
 def test_same_seed_same_table_whatever_the_chunk_size():
-    spec = sweeps.make_spec("paper", 30, {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, T=1.0, seed=3)
+    spec = sweeps.make_spec("paper", n=30, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, T=1.0, seed=3)
     assert_same_table(sweeps.run(spec, chunk=7), sweeps.run(spec, chunk=30))
 
 
@@ -127,7 +127,7 @@ def test_two_processes_under_jax_distributed_give_the_single_process_table(tmp_p
 
 def test_a_diverging_sample_is_flagged_and_the_others_are_right():
     # K_GP = 100 takes plain RK4 at dt = 1e-3 beyond its stability limit in the paper scenario.
-    spec = sweeps.make_spec("paper", 6, {"K_GP": "choice:0.5,100"}, T=1.5, seed=1, integrator="rk4")
+    spec = sweeps.make_spec("paper", n=6, vary={"K_GP": "choice:0.5,100"}, T=1.5, seed=1, integrator="rk4")
     table = sweeps.run(spec, chunk=6)
     bad = table["K_GP"] == 100
     assert bad.any() and (~bad).any()

@@ -80,7 +80,7 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
     both = evaluate(Query(THETA, masses))
     for k in range(THETA.shape[0]):
         one = evaluate(Query(THETA[k:k + 1], masses))
-        for name in ("f", "c", "peak", "lag_mm", "min_grip", "min_swi"):
+        for name in ("f", "c", "peak", "rms_lag", "min_grip", "min_swi"):
             np.testing.assert_allclose(getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name)
 
 
@@ -142,7 +142,7 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
         C = len(query.thetas)
         c = np.maximum(0.0, query.thetas[:, :1] + 1.0) * np.ones((C, 2))
         zeros = np.zeros((C, 2))
-        state = tuner.tell(state, query, Evaluation(f=(query.thetas**2).sum(1), c=c, peak=zeros, lag_mm=zeros,
-                                                    min_grip=zeros, finite=np.ones(C, bool), holds=(c == 0).all(1)))
+        state = tuner.tell(state, query, Evaluation(f=(query.thetas**2).sum(1), c=c, peak=zeros, rms_lag=zeros,
+                                                    min_grip=zeros, valid=np.ones(C, bool), holds=(c == 0).all(1)))
     assert state.restarts >= 1 and state.popsize == first * 2**state.restarts
     assert list(tmp_path.iterdir()) == []  # cma's loggers wrote nothing, not even their folder

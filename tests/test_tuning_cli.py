@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from coopjax import cli
-from tuning import problem as pb
+from tuning import judge as judgement
 from tuning import race
 from tuning.tuners import TUNERS
 
@@ -27,10 +27,10 @@ def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh
     assert "holds >= F_lim" in out
     result = json.loads(open("tuned.json").read(), parse_constant=lambda c: pytest.fail(f"{c} is not standard JSON"))
     assert set(result["params"]) == {"K_GP", "K_GI", "tau", "G_e"}
-    assert result["judge"]["dt"] == pb.JUDGE_DT and result["judge"]["integrator"] == "filippov"
+    assert result["judge"]["dt"] == judgement.JUDGE_DT and result["judge"]["integrator"] == "filippov"
     # The same two sets through the Python API, in one batch as the CLI does: Table 1's gains lose
     # the grip, and a released body's impacts amplify rounding differences between batch shapes.
-    paper, fresh = pb.judge([result["start"], result["params"]], np.asarray(result["held_out_masses"]),
+    paper, fresh = judgement.judge([result["start"], result["params"]], np.asarray(result["held_out_masses"]),
                             w_lag=result["config"]["problem"]["w_lag"])
     for key in ("min_grip", "peak_grip", "rms_lag", "objective"):
         assert result["after"][key] == pytest.approx(getattr(fresh, key), rel=1e-12), key

@@ -27,29 +27,58 @@ from coopjax.simulation import simulate
 from coopjax.stability import check_step
 from tuning import driver, race
 from tuning.plots import plot_history, plot_pareto, plot_race, plot_traces
-from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, JUDGE_DT, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem,
-                            check_mass_range, expand_params, from_log, held_out_masses, judge, judge_config, log_bounds,
-                            select, starting_points, to_log, training_config, validation_masses)
+from tuning.judge import JUDGE_DT, judge, judge_config, select
+from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem, check_mass_range,
+                            expand_params, from_log, held_out_masses, log_bounds, starting_points, to_log,
+                            training_config, validation_masses)
 from tuning.tuners import TUNERS
-from tuning.tuners.adam import MODES, AdamAL
 from tuning.tuners.cmaes import CMAES
-from tuning.tuners.screen_slp import SEARCHES, ScreenSLP
+from tuning.tuners.screen_slp import ScreenSLP
 
 NAME = "tune"
 DEFAULT_OUT = "tuned.json"
-# API names of the tuning problem and its tuner, and the flags that set them.
-FIELD_FLAGS = {"names": "--params", "n_masses": "--train-masses", "learning_rate": "--lr", "cvar_alpha": "--cvar-alpha",
-               "w_lag": "--w-lag", "al_every": "--al-every", "spread": "--spread", "masses": "--masses"}
+# API names of the tuning problem, and the flags that set them (the tuners' own are added from their
+# declarations by `add_parser`).
+FIELD_FLAGS = {"names": "--params", "n_masses": "--train-masses", "cvar_alpha": "--cvar-alpha", "w_lag": "--w-lag",
+               "spread": "--spread", "masses": "--masses"}
 STARTS, SPREAD = 8, 2.5  # K starting points: the first is the user's (Table 1's), the others drawn near it
-METHODS = {ScreenSLP.name: ScreenSLP, AdamAL.name: AdamAL}  # the tuners a plain run can end on its own
 DEFAULT_METHOD = ScreenSLP.name
-# The gradient tuner's flags: None (unset) takes its defaults; another method refuses them.
-ADAM_FLAGS = {"mode": "--mode", "lr": "--lr", "rho": "--rho", "al_every": "--al-every"}
-SCREEN_FLAGS = {"screen": "--screen", "local": "--local", "search": "--search"}
+
+
+def methods() -> dict:
+    """The registered tuners a plain run can end on its own (`Tuner.plain_run`)."""
+    return {name: cls for name, cls in TUNERS.items() if cls.plain_run}
+
+
+def tuner_flags() -> dict[str, list]:
+    """Every flag the plain-run tuners declare (`tuners.setting`): flag -> [(tuner class, field)]."""
+    flags: dict[str, list] = {}
+    for cls in methods().values():
+        for field in dataclasses.fields(cls):
+            if field.metadata.get("flag"):
+                flags.setdefault(field.metadata["flag"], []).append((cls, field))
+    return flags
+
+
+def _dest(flag: str) -> str:
+    return "tuner_" + flag[2:].replace("-", "_")
+
+
+def _add_tuner_flags(p) -> None:
+    """One flag per tuner setting, unset by default (the tuner's own default); a flag that several
+    tuners declare says what each does with it."""
+    for flag, owners in tuner_flags().items():
+        first = owners[0][1]
+        kind = type(first.default)
+        text = "; ".join(f"{cls.name}: {f.metadata['help']} (default {f.default})" for cls, f in owners)
+        p.add_argument(flag, dest=_dest(flag), type=kind, default=None, choices=first.metadata.get("choices"),
+                       help=text)
+        for _, f in owners:
+            FIELD_FLAGS[f.name] = flag
 
 
 def add_parser(sub):
-    d, sl, p0 = AdamAL(), ScreenSLP(), Problem()
+    p0 = Problem()
     p = sub.add_parser(
         NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
         description="Tune controller parameters on the carry scenario, on the hard switch under the sliding-mode "
@@ -60,7 +89,8 @@ def add_parser(sub):
         "Writes OUT (json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
         "_race.png; with --pareto: _pareto.png).",
     )
-    p.add_argument("--method", default=DEFAULT_METHOD, help=f"the tuner: {', '.join(METHODS)} (default {DEFAULT_METHOD})")
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=list(methods()),
+                   help=f"the tuner (default {DEFAULT_METHOD}); its settings are the flags that name it below")
     p.add_argument("--params", default="all", help="comma-separated names, or gains (K_GP,K_GI,tau,G_e), per-robot "
                    "(the 4 gains of each robot: 8) or all (per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14) (default all)")
     p.add_argument("--masses", default="loguniform:0.5:5", help="body-mass range, loguniform:LOW:HIGH or uniform:LOW:HIGH, kg (default loguniform:0.5:5)")
@@ -74,17 +104,7 @@ def add_parser(sub):
     p.add_argument("--temperature", type=float, default=p0.temperature, help=f"gradient: softness of smoothmax, N (default {p0.temperature:g})")
     p.add_argument("--cvar-alpha", type=float, default=p0.cvar_alpha, help=f"gradient, cvar: the worst share of masses averaged (default {p0.cvar_alpha:g})")
     p.add_argument("--starts", type=int, default=STARTS, help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)")
-    p.add_argument("--steps", type=int, default=None, help=f"screen-SLP: Jacobian steps of the local solves (default "
-                   f"{sl.steps}); gradient: optimiser steps (default {d.steps})")
-    p.add_argument("--screen", type=int, default=None, help=f"screen-SLP: points screened in the box x/÷ e^SPREAD "
-                   f"around the first start, besides the starts (default {sl.screen})")
-    p.add_argument("--search", default=None, help="screen-SLP: the screen's points after its first "
-                   f"batch: CMA-ES generations (cma) or Sobol points (sobol) (default {sl.search})")
-    p.add_argument("--local", type=int, default=None, help=f"screen-SLP: local solves run side by side (default {sl.local})")
-    p.add_argument("--mode", default=None, help="gradient: forward, reverse, or auto: forward up to 4 parameters, reverse above (default auto)")
-    p.add_argument("--lr", type=float, default=None, help=f"gradient: peak learning rate, log units (default {d.learning_rate:g})")
-    p.add_argument("--rho", type=float, default=None, help=f"gradient: initial penalty of the augmented Lagrangian, 1/N (default {d.rho:g})")
-    p.add_argument("--al-every", type=int, default=None, help=f"gradient: steps between multiplier updates (default {d.al_every})")
+    _add_tuner_flags(p)
     p.add_argument("--spread", type=float, default=SPREAD, help=f"random starts lie within x/÷ e^SPREAD of the first (default {SPREAD:g})")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts and of the mass draws (default 0)")
     p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"step of the hard model for validation and judging, s (default {JUDGE_DT:g})")
@@ -136,36 +156,17 @@ class Plan:
         masses = _parse_masses(args.masses)
         if args.held_out < 2:
             raise BadInput(f"--held-out is {args.held_out}: judge on at least 2 masses (the lightest and the heaviest)")
-        if args.method not in METHODS:
-            raise BadInput(f"--method must be one of {', '.join(METHODS)}, not {args.method!r}")
-        others = ADAM_FLAGS if args.method != AdamAL.name else SCREEN_FLAGS
-        for field, flag in others.items():
-            if getattr(args, field) is not None:
-                raise BadInput(f"{flag} sets the {'gradient' if others is ADAM_FLAGS else 'screen-SLP'} tuner; "
-                               f"this run's method is {args.method}")
-        for flag, value in (("--starts", args.starts), ("--steps", args.steps), ("--al-every", args.al_every),
-                            ("--local", args.local)):
-            if value is not None and value < 1:
-                raise BadInput(f"{flag} is {value}: it must be a whole number, at least 1")
-        if args.search is not None and args.search not in SEARCHES:
-            raise BadInput(f"--search must be one of {', '.join(SEARCHES)}, not {args.search!r}")
-        if args.screen is not None and args.screen < 0:
-            raise BadInput(f"--screen is {args.screen}: it must be 0 or more")
+        self.tuner = make_tuner(args)
+        if args.starts < 1:
+            raise BadInput(f"--starts is {args.starts}: it must be a whole number, at least 1")
         if args.seed < 0:
             raise BadInput(f"--seed is {args.seed}: it must be 0 or more")
-        if args.mode is not None and args.mode not in MODES:
-            raise BadInput(f"--mode must be one of {', '.join(MODES)}, not {args.mode!r}")
-        for flag, value in (("--lr", args.lr), ("--rho", args.rho)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise BadInput(f"{flag} is {value:g}: it must be positive")
         if not (math.isfinite(args.spread) and args.spread >= 0):
             raise BadInput(f"--spread is {args.spread:g}: it must be 0 or more")
         if not (math.isfinite(args.judge_dt) and args.judge_dt > 0):
             raise BadInput(f"--judge-dt is {args.judge_dt:g}: it must be positive")
         if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
             raise BadInput(f"--dt is {args.dt:g}: it must be positive")
-        if args.switch not in SWITCHES:
-            raise BadInput(f"--switch must be one of {', '.join(SWITCHES)}, not {args.switch!r}")
         fixed = assignments(args.set)
         if any(split_name(n)[0] == "M_b" for n in fixed):
             raise BadInput("--set M_b: the body mass is what the tuner varies; give its range with --masses")
@@ -181,7 +182,6 @@ class Plan:
         self.problem = Problem(names=names, masses=masses, n_masses=args.train_masses, margin=args.margin,
                                jitter=args.jitter, config=training_config(args.switch, args.dt), w_lag=args.w_lag,
                                aggregate=args.aggregate, temperature=args.temperature, cvar_alpha=args.cvar_alpha).validate()
-        self.tuner = make_tuner(args)
         self.starts, self.spread, self.seed = args.starts, args.spread, args.seed
         self.held_out = held_out_masses(masses, args.held_out)
         self.judge_dt = args.judge_dt
@@ -219,12 +219,22 @@ class Plan:
 
 
 def make_tuner(args):
-    """The --method's tuner with the flags that were given (the others at its defaults)."""
-    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}
-    if args.method == AdamAL.name:
-        return AdamAL(**given(steps=args.steps, mode=args.mode, learning_rate=args.lr, al_every=args.al_every, rho=args.rho))
-    return ScreenSLP(**given(steps=args.steps, screen=args.screen, local=args.local, spread=args.spread,
-                             search=args.search))
+    """The --method's tuner with the flags that were given (the others at its defaults). A flag of
+    another tuner is refused; the tuner checks its own settings (an `InputError` names the flag)."""
+    cls = methods()[args.method]
+    settings = {}
+    for flag, owners in tuner_flags().items():
+        value = getattr(args, _dest(flag))
+        if value is None:
+            continue
+        field = next((f for c, f in owners if c is cls), None)
+        if field is None:
+            raise BadInput(f"{flag} sets the {' and '.join(c.name for c, _ in owners)} tuner; "
+                           f"this run's method is {cls.name}")
+        settings[field.name] = value
+    if "spread" in {f.name for f in dataclasses.fields(cls)}:  # the screen's box is the starts' (--spread)
+        settings["spread"] = args.spread
+    return cls(**settings)
 
 
 def _plain(problem: Problem) -> dict:
@@ -292,7 +302,7 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
           f"masses from {plan.held_out[0]:.3g} to {plan.held_out[-1]:.3g} kg ...")
     before, start_trace = start_side.result()
     after = judge(tuned, plan.held_out, plan.base, problem.w_lag, plan.judge_dt)
-    history = dict(result.state.history)
+    history = dict(tuner.history(result.state))
     history.pop("theta", None)
     data = {
         "params": tuned, "start": plan.first, "before": before.row(), "after": after.row(),
@@ -388,7 +398,7 @@ def _trace(plan: Plan, values):
 def _plots(plan: Plan, tuned, start_trace, result, files, out: Outputs):
     p = plan.problem
     what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
-    plot_history(result.state.history, out.path(files["history"]),
+    plot_history(plan.tuner.history(result.state), out.path(files["history"]),
                  f"tuning {what} with {plan.tuner.name} on the {p.switch} model (dt = {p.dt:g} s), {p.n_masses} masses\n"
                  f"{plan.tuner.plan_text(len(p.names), plan.starts)}")
     runs = {"start (Table 1)": start_trace, "tuned": _trace(plan, tuned)}
@@ -438,7 +448,7 @@ def _pareto(plan: Plan, files) -> int:
                 cloud += [from_log(t, names) for t, h in zip(result.record.thetas, result.record.holds) if h][:200]
     flat = [(kind, t, w, p) for kind, t, w, p in rows_in] + [("cloud", None, None, p) for p in cloud]
     print(f"judging {len(flat)} parameter sets on the held-out masses ...")
-    verdicts = judge([p for *_, p in flat], plan.held_out, plan.base, 1.0, plan.judge_dt, progress=True)
+    verdicts = judge([p for *_, p in flat], plan.held_out, plan.base, 1.0, plan.judge_dt)
     rows = [{"kind": kind, "tuner": t, "w_lag": w, "params": {k: float(v) for k, v in p.items()}, **v.row()}
             for (kind, t, w, p), v in zip(flat, verdicts)]
     with Outputs() as out:

@@ -49,7 +49,7 @@ class Record(NamedTuple):
 
     def add(self, query: Query, evaluation: Evaluation, wall: float, trajectories: int) -> None:
         for i in range(len(query.thetas)):
-            ok = bool(evaluation.finite[i])
+            ok = bool(evaluation.valid[i])
             self.thetas.append(np.asarray(query.thetas[i]))
             self.f.append(float(evaluation.f[i]) if ok else math.inf)
             self.holds.append(bool(evaluation.holds[i]))

@@ -27,7 +27,7 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
     def outputs(thetas, masses, base):
         t = terms(thetas, base, problem, masses)
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
+        return dict(f=t.f, c=t.c, peak=m.peak_grip, rms_lag=m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
                     finite=m.finite.astype(thetas.dtype))
 
     if derivative is None:
@@ -41,7 +41,7 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
             basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
             out, tangents = jax.vmap(lambda v: jax.jvp(lambda th: outputs(th, masses, base), (thetas,), (v,)),
                                      out_axes=(None, 0))(basis)
-            out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "lag_mm", "min_swi")}
+            out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "rms_lag", "min_swi")}
             return out
 
         return jax.jit(jacobian)
@@ -52,7 +52,7 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
 
     def pack(t, L, grad):
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, lag_mm=1e3 * m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
+        return dict(f=t.f, c=t.c, peak=m.peak_grip, rms_lag=m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
                     finite=m.finite, value=L, gradient=grad)
 
     if mode == "forward":
@@ -111,14 +111,15 @@ class Evaluator:
         C, M = np.shape(query.thetas)[0], np.shape(query.masses)[0]
         self.trajectories += C * M
         f, c = np.asarray(out["f"]), np.asarray(out["c"]).reshape(C, M)
-        finite = np.asarray(out["finite"]).reshape(C, M).all(1) & np.isfinite(f) & np.isfinite(c).all(1)
+        # Every run of the candidate did not diverge (`Metrics.finite`), and its objective and constraints are finite.
+        valid = np.asarray(out["finite"]).reshape(C, M).all(1) & np.isfinite(f) & np.isfinite(c).all(1)
         min_grip = np.asarray(out["min_grip"]).reshape(C, M)
-        holds = finite & (np.nan_to_num(min_grip, nan=-np.inf) >= self.F_lim - HOLD_TOLERANCE).all(1)
+        holds = valid & (np.nan_to_num(min_grip, nan=-np.inf) >= self.F_lim - HOLD_TOLERANCE).all(1)
         jac = None
         if "jacobian" in out:
             jac = {k: np.asarray(v) for k, v in out["jacobian"].items()}
         return Evaluation(f=f, c=c, peak=np.asarray(out["peak"]).reshape(C, M),
-                          lag_mm=np.asarray(out["lag_mm"]).reshape(C, M), min_grip=min_grip, finite=finite, holds=holds,
+                          rms_lag=np.asarray(out["rms_lag"]).reshape(C, M), min_grip=min_grip, valid=valid, holds=holds,
                           min_swi=np.asarray(out["min_swi"]).reshape(C, M),
                           value=None if "value" not in out else np.asarray(out["value"]),
                           gradient=None if "gradient" not in out else np.asarray(out["gradient"]), jacobian=jac)

@@ -22,6 +22,13 @@ def plot_history(history: dict, path: str, title: str) -> None:
     A history with `phi` (screen-SLP) shows each lane's merit and its grip margin (the least Filippov
     weight over the training masses); otherwise the objective f and the grip shortfall."""
     plt = _pyplot()
+    if not history.get("step"):  # a tuner that keeps no per-step history (`Tuner.history`)
+        fig, a = plt.subplots(figsize=(6, 2.5), constrained_layout=True)
+        a.text(0.5, 0.5, "this tuner keeps no per-step history", ha="center", va="center")
+        a.set_axis_off()
+        fig.suptitle(title, fontsize=10)
+        _save(fig, path)
+        return
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.8), constrained_layout=True)
     steps = np.asarray(history["step"]) + 1
     lanes = "phi" in history

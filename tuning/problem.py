@@ -1,4 +1,4 @@
-"""What the tuner optimises and how a result is judged.
+"""What the tuner optimises (how a result is judged: `tuning.judge`).
 
 The problem is constrained, on the hard model itself:
 
@@ -13,8 +13,8 @@ The problem is constrained, on the hard model itself:
   growing with both the depth and the duration of a loss.
 - Training runs the problem's `config`: by default the hard switch and contact under the
   sliding-mode integrator at the coarsest step within the accuracy tolerances (2e-3 s).
-- `judge` is the verdict: the hard model at 1e-3 s, on held-out masses the training grid never
-  hits; `select` picks among candidates on a third grid of validation masses.
+- `held_out_masses` and `validation_masses` are the grids `tuning.judge` judges and selects on;
+  the training grid never hits them.
 
 Parameters enter in log space, so every iterate is positive.
 """
@@ -29,12 +29,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import devices, sweeps
+from coopjax import devices
 from coopjax.config import Config
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS
 from coopjax.objectives import Metrics
-from coopjax.params import PARAMETERS, Params, make_params, split_name
+from coopjax.params import PARAMETERS, Params, split_name
 from coopjax.simulation import metrics_of
 from coopjax.stability import stable_dt
 
@@ -48,13 +48,8 @@ BOUNDS = {"K_GP": (0.005, 100.0), "K_GI": (0.001, 10.0), "tau": (0.05, 50.0), "G
 # integrator's limit can dip a little below F_lim while the motion enters the surface.
 HOLD_TOLERANCE = 0.01  # N
 # s: filippov met the accuracy tolerances on 16 of 16 samples at 2e-3 and 1e-3 (docs/model.md, "Step
-# size"). Training takes the coarsest; judging takes 1e-3, a factor 2 inside the stability limit of
-# Table 1's gains (about 4e-3 s), which shrinks as K_GP grows.
+# size"). Training takes the coarsest; judging (`tuning.judge`) takes 1e-3.
 TRAIN_DT = INTEGRATORS["filippov"].converged_dt[("carry", "hard")]
-JUDGE_DT = 1e-3
-# Runs per device per call of every judging: one block for all sizes, so that the selection, the
-# verdict and the race share one compiled program per step (a new block size costs 8 s of compiling).
-JUDGE_BLOCK = 128
 SURROGATE_DT = 2.5e-4  # s: plain RK4 on the smooth surrogates (docs/tuning.md)
 SWITCHES = ("hard", "blend", "smooth", "straight_through")
 AGGREGATES = ("smoothmax", "cvar", "max", "mean")
@@ -283,130 +278,6 @@ def terms(theta, base: Params, problem: Problem, masses, checkpoint: bool | str 
     f = smooth_max(peak, problem) + smooth_max(problem.w_lag * lag_mm, problem)
     c = deficit(m.slip.reshape(K, M))
     return Terms(f, c, jax.tree_util.tree_map(lambda x: x.reshape(K, M), m))
-
-
-# ----------------------------------------------------------------------------------------------
-# Judging: hard switch, sliding-mode integrator, float64, masses the training never saw
-
-
-class Verdict(NamedTuple):
-    """Worst case over the judged masses, and the per-mass metrics behind it."""
-
-    min_grip: float  # N, least over masses
-    peak_grip: float  # N, largest over masses
-    rms_lag: float  # m, largest over masses
-    slip: float  # N^2, largest over masses
-    crush: float  # N^2, largest over masses
-    impact: float  # N^2, crush after the grip window (release), largest over masses
-    objective: float  # N: peak_grip + w_lag * rms_lag in mm (the hard maximum over masses)
-    finite: bool
-    holds: bool  # min_grip >= F_lim - HOLD_TOLERANCE at every mass, and no step artefact
-    step_error: float  # the two-step check's worst disagreement over masses, in tolerances (NaN: not checked)
-    step_artefact: bool  # some mass's answer moved by more than a tolerance between dt and dt/2
-    per_mass: dict  # name -> list over masses
-
-    @property
-    def score(self) -> float:
-        """The validated objective: `objective` if the grip holds at every mass, else infinity."""
-        return self.objective if self.holds else math.inf
-
-    def row(self) -> dict:
-        row = dict(self._asdict())
-        row["rms_lag_mm"] = self.rms_lag * 1e3
-        return row
-
-
-def judge_config(dt: float = JUDGE_DT) -> Config:
-    """The verdict's runs: the hard switch and contact, the sliding-mode integrator, float64."""
-    return Config("carry", switch="hard", contact="unilateral", integrator="filippov", dt=dt, dtype="float64")
-
-
-def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Params | None = None, w_lag: float = 1.0,
-          dt: float = JUDGE_DT, progress: bool = False, check_step: bool = True):
-    """Judge one parameter set (or a list of them) with the hard model on `masses`, in float64.
-
-    All runs go through the sweep runner, so they are sharded over every local device. With
-    `check_step` (the default) every run is repeated at dt / 2 (`coopjax.step_check`): a set whose
-    answers move by more than the accuracy tolerances is a step artefact, and does not hold.
-    """
-    if not jax.config.jax_enable_x64:
-        raise InputError("judging runs in float64: call jax.config.update('jax_enable_x64', True) first")
-    many = isinstance(values, (list, tuple))
-    sets = list(values) if many else [values]
-    masses = np.asarray(masses, np.float64)
-    G, M = len(sets), len(masses)
-    fixed = _fixed_from(base, set().union(*map(set, sets)))
-    table = {n: np.repeat([float(g[n]) for g in sets], M) for n in sets[0]}
-    table["M_b"] = np.tile(masses, G)
-    spec = sweeps.make_spec(judge_config(dt), None, {}, fixed, 0, table, check_step=check_step)
-    columns = sweeps.run(spec, chunk=max(G * M, 1), progress=progress, block=JUDGE_BLOCK)
-    F_lim = float(np.asarray((base or make_params()).F_lim).min())
-    verdicts = [_verdict({k: columns[k][g * M:(g + 1) * M] for k in spec.columns}, w_lag, F_lim) for g in range(G)]
-    return verdicts if many else verdicts[0]
-
-
-def select(candidates: list[dict], masses, base: Params | None = None, w_lag: float = 1.0,
-           dt: float = JUDGE_DT, check_step: bool = True) -> tuple[int, list[Verdict]]:
-    """The candidate a hard-model validation prefers: it holds the grip at every validation mass and
-    then has the lowest objective (ties: the earlier candidate). Returns its index and all verdicts.
-
-    This is model selection, not judging: validation masses are never the held-out ones.
-    """
-    verdicts = judge(list(candidates), masses, base, w_lag, dt, check_step=check_step)
-    return preferred(verdicts), verdicts
-
-
-def preferred(verdicts: list[Verdict]) -> int:
-    """`select`'s rule: the first verdict that holds with the lowest objective (or, if none holds, the
-    lowest objective)."""
-    key = lambda i: (not verdicts[i].holds, verdicts[i].objective if np.isfinite(verdicts[i].objective) else np.inf)
-    return min(range(len(verdicts)), key=key)
-
-
-def _fixed_from(base: Params | None, tuned: set) -> dict[str, float]:
-    """The non-default scalar values of `base` as --set style overrides (tuned names excluded)."""
-    if base is None:
-        return {}
-    default = make_params()
-    fixed = {}
-    for name in PARAMETERS:
-        value, ref = np.asarray(getattr(base, name), np.float64), np.asarray(getattr(default, name), np.float64)
-        if value.shape != ref.shape:
-            raise InputError("the base parameters of a tuning run must be a single set, not a batch")
-        if np.array_equal(value, ref) or name in tuned or name == "M_b":
-            continue
-        if PARAMETERS[name].per_robot:
-            fixed[f"{name}_L"], fixed[f"{name}_R"] = float(value[0]), float(value[1])
-        else:
-            fixed[name] = float(value)
-    tuned_bases = {split_name(n)[0] for n in tuned if split_name(n)[1] is None}
-    return {k: v for k, v in fixed.items() if k not in tuned and split_name(k)[0] not in tuned_bases}
-
-
-def _verdict(m: dict, w_lag: float, F_lim: float) -> Verdict:
-    # A step artefact ran to the end: its values are shown, and it does not hold.
-    finite = bool(np.all((m["finite"] > 0.5) | (np.asarray(m["status"]) == "step_artefact")))
-
-    def worst(x, pick):
-        return float(pick(x)) if finite else float("nan")
-
-    min_grip, peak, lag = worst(m["min_grip"], np.min), worst(m["peak_grip"], np.max), worst(m["rms_lag"], np.max)
-    checked = "step_error" in m
-    artefact = bool(np.any(m["status"] == "step_artefact")) if checked else False
-    return Verdict(
-        min_grip=min_grip,
-        peak_grip=peak,
-        rms_lag=lag,
-        slip=worst(m["slip"], np.max),
-        crush=worst(m["crush"], np.max),
-        impact=worst(m["impact"], np.max),
-        objective=peak + w_lag * 1e3 * lag,
-        finite=finite,
-        holds=finite and min_grip >= F_lim - HOLD_TOLERANCE and not artefact,
-        step_error=float(np.nanmax(m["step_error"])) if checked and np.isfinite(m["step_error"]).any() else float("nan"),
-        step_artefact=artefact,
-        per_mass={k: [float(x) for x in m[k]] for k in ("min_grip", "peak_grip", "rms_lag", "slip", "crush", "impact")},
-    )
 
 
 def starting_points(problem: Problem, base: Params, first: dict[str, float], count: int, spread: float,

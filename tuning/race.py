@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 from tuning import driver
-from tuning.problem import from_log, held_out_masses, judge, preferred, validation_masses
+from tuning.judge import judge, preferred
+from tuning.problem import from_log, held_out_masses, validation_masses
 
 MAX_SNAPSHOTS = 24  # validated points per tuner and seed (log-spaced in time, the last always kept)
 

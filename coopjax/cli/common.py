@@ -106,12 +106,6 @@ def check_output(path: str, what: str, extensions=None) -> None:
         raise BadInput(f"{what} {path!r}: the file name must end in one of .{', .'.join(extensions)}")
 
 
-def positive_int(value: int, flag: str, minimum: int = 1) -> int:
-    if value < minimum:
-        raise BadInput(f"{flag} is {value}: it must be at least {minimum}")
-    return value
-
-
 def message(error: InputError, parser: argparse.ArgumentParser | None = None) -> str:
     """The one line for a mistake: an API name at the start of the message becomes its flag."""
     text = str(error)

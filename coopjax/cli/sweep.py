@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from coopjax import objectives, sweeps
+from coopjax.status import Status
 from coopjax.cli import interrupts
 from coopjax.cli.common import BadInput, assignments, check_output, config_arguments, config_from
 from coopjax.config import step_size_note
@@ -119,7 +120,8 @@ def run(args) -> int:
     if all(v is not None for v in distributed):  # before anything starts JAX's backend
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    spec = sweeps.make_spec(config, args.n, vary, fixed, args.seed, table, check_step=args.check_step)
+    spec = sweeps.make_spec(config, n=args.n, vary=vary, fixed=fixed, seed=args.seed, table=table,
+                             check_step=args.check_step)
     parts = args.out + ".parts"
     created = not os.path.exists(parts)
     interrupts.report_with(lambda: kept(parts, created))
@@ -148,14 +150,15 @@ def kept(parts: str, created: bool) -> str:
 
 
 def report(spec, columns, elapsed) -> None:
-    finite = np.asarray(columns["finite"])
     status = np.asarray(columns["status"])
-    flagged = ", ".join(f"{int((status == s).sum())} {s}" for s in sweeps.STATUSES[1:] if (status == s).any())
+    trusted = status == Status.OK.label
+    flagged = ", ".join(f"{int((status == s.label).sum())} {s.label}" for s in list(Status)[1:]
+                        if (status == s.label).any())
     print(f"coopjax sweep: {spec.n} samples of {spec.config.scenario} in {elapsed:.1f} s on {jax.device_count()} "
-          f"device(s) x {jax.process_count()} process(es); {int(finite.sum())} ok"
+          f"device(s) x {jax.process_count()} process(es); {int(trusted.sum())} ok"
           + (f", flagged: {flagged} (see the status column)" if flagged else ""))
     for name in spec.config.metrics:
-        v = np.asarray(columns[name])[finite]
+        v = np.asarray(columns[name])[trusted]
         v = v[np.isfinite(v)]
         if v.size:
             unit = objectives.METRICS[name].unit

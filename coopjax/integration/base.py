@@ -8,7 +8,9 @@ step-size note (the steps measured to converge, per scenario and switch).
 
 from __future__ import annotations
 
+import abc
 import functools
+import inspect
 from typing import Callable, ClassVar, Mapping, NamedTuple
 
 import jax
@@ -52,11 +54,12 @@ class Observation(NamedTuple):
     path: Path | None
 
 
-class Integrator:
+class Integrator(abc.ABC):
     """A fixed-step integrator of the closed loop (the shape of diffrax's `AbstractSolver`).
 
-    Subclasses set the class attributes and implement `step` and `observe`. `params` in both is the
-    pair `model.robots(params)`, split once outside the time loop; `y` is the (20, B) state.
+    Subclasses set `name` and `switches` and implement `step` and `observe`; `register` refuses one
+    that does not. `params` in both is the pair `model.robots(params)`, split once outside the time
+    loop; `y` is the (20, B) state.
     """
 
     name: ClassVar[str]
@@ -67,13 +70,17 @@ class Integrator:
     # dt -> 0 limit (docs/model.md, "Step size"); None: no step tried reached them. Missing: not measured.
     converged_dt: ClassVar[Mapping[tuple[str, str], float | None]] = {}
 
-    def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, Path]:
-        """y(t) -> (y(t + dt), the signals at t, the grip force's path through the step)."""
-        raise NotImplementedError
+    @abc.abstractmethod
+    def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, Path | None]:
+        """y(t) -> (y(t + dt), the signals at t, the grip force's path through the step).
 
+        An integrator that does not cut its step may return None for the path: the loop then takes
+        the step as one piece, from the force at t to the force `observe` gives at t + dt (one more
+        field evaluation a step)."""
+
+    @abc.abstractmethod
     def observe(self, params, y, t, dt, scenario, options) -> model.Aux:
         """The signals recorded at (t, y)."""
-        raise NotImplementedError
 
     @staticmethod
     def amplification(z):
@@ -92,7 +99,11 @@ INTEGRATORS: dict[str, Integrator] = {}
 
 
 def register(cls: type[Integrator]) -> type[Integrator]:
-    """Class decorator: make an integrator known by its name."""
+    """Class decorator: make an integrator known by its name. An incomplete one is refused here."""
+    missing = [a for a in ("name", "switches") if not hasattr(cls, a)] + sorted(getattr(cls, "__abstractmethods__", ()))
+    if not (inspect.isclass(cls) and issubclass(cls, Integrator)) or missing:
+        raise TypeError(f"{getattr(cls, '__name__', cls)!r} is not a complete coopjax Integrator: it must subclass "
+                        f"Integrator and define {', '.join(missing) or 'name, switches, step and observe'}")
     if cls.name in INTEGRATORS and type(INTEGRATORS[cls.name]) is not cls:
         raise ValueError(f"an integrator named {cls.name!r} is already registered")
     INTEGRATORS[cls.name] = cls()

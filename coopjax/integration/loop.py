@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from coopjax import model
 from coopjax.errors import InputError
-from coopjax.integration.base import INTEGRATORS, Observation
+from coopjax.integration.base import INTEGRATORS, Observation, Path
 from coopjax.params import Params
 from coopjax.scenarios import get
 
@@ -106,6 +106,8 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
         y, acc, diverged, t_div = carry
         t = k.astype(dtype) * dt
         y_new, aux, path = integrator.step(views, y, t, dt, scenario, options)
+        if path is None:  # a step the integrator does not cut: one piece, to the force at its end
+            path = Path.whole(aux.F, observe(t + dt, y_new).F)
         acc_new = metrics.update(acc, Observation(k, t, y, aux, path), params)
         acc = jax.tree_util.tree_map(lambda new, old: jnp.where(diverged, old, new), acc_new, acc)
         # A non-finite state or an absurd force freezes the sample at its last good state, so its

@@ -13,6 +13,7 @@ from coopjax.errors import InputError
 from coopjax.integration import Observation
 from coopjax.params import Params, Spec, declare
 from coopjax.scenarios import Scenario
+from coopjax.status import Status
 
 
 class Context(NamedTuple):
@@ -64,15 +65,16 @@ class Metric:
 
 
 METRICS: dict[str, Metric] = {}
-# Bookkeeping that every run reports beside the registered metrics.
-STATUS_FIELDS = {"finite": "1 if the run stayed finite, else 0", "t_diverged": "s, when it diverged (NaN if it did not)"}
+# Bookkeeping that every run reports beside the registered metrics; `status` is derived from them.
+STATUS_FIELDS = {"finite": "1 if the run did not diverge, else 0", "t_diverged": "s, when it diverged (NaN if it did not)"}
+RESERVED = (*STATUS_FIELDS, "status")
 
 
 def register(metric: Metric) -> Metric:
     """Make a metric known by name; its parameters are declared with it."""
     if metric.name in METRICS and METRICS[metric.name] is not metric:
         raise ValueError(f"a metric named {metric.name!r} is already registered")
-    if metric.name in STATUS_FIELDS:
+    if metric.name in RESERVED:
         raise ValueError(f"{metric.name!r} is reported by every run already")
     declare(f"metric {metric.name}", dict(metric.parameters))
     METRICS[metric.name] = metric
@@ -125,6 +127,12 @@ class Metrics:
 
     def __repr__(self):
         return f"Metrics({', '.join(self._values)})"
+
+    @property
+    def status(self):
+        """Per sample, the run's own `coopjax.status.Status`: OK, or DIVERGED where it did not stay
+        finite. (A sweep's checks of the loop and the step add the other codes.)"""
+        return jnp.where(self._values["finite"], Status.OK, Status.DIVERGED)
 
     @property
     def _fields(self) -> tuple[str, ...]:

@@ -14,7 +14,7 @@ calling cos/sin per sample, which dominated a first version's cost. A bump start
 phase from the clock's by angle subtraction with the constants cos 2 pi t0, sin 2 pi t0.
 """
 
-from coopjax.scenarios.base import SCENARIOS, TWO_PI, Clock, Scenario, bump, get, get_scenario, profile, register, stacked
+from coopjax.scenarios.base import SCENARIOS, TWO_PI, Clock, Scenario, bump, get, profile, register, stacked
 from coopjax.scenarios import carry, paper  # noqa: E402,F401  (the built-in scenarios register themselves)
 
-__all__ = ["Clock", "SCENARIOS", "Scenario", "TWO_PI", "bump", "get", "get_scenario", "profile", "register", "stacked"]
+__all__ = ["Clock", "SCENARIOS", "Scenario", "TWO_PI", "bump", "get", "profile", "register", "stacked"]

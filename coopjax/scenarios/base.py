@@ -9,7 +9,7 @@ from typing import Callable, Mapping, NamedTuple
 import jax.numpy as jnp
 
 from coopjax.errors import InputError
-from coopjax.params import Params, Spec, declare
+from coopjax.params import Spec, declare
 
 TWO_PI = 2.0 * math.pi
 
@@ -125,5 +125,3 @@ def get(name: str) -> Scenario:
     except (KeyError, TypeError):
         raise InputError(f"unknown scenario {name!r}; choose one of: {', '.join(SCENARIOS)}", "scenario") from None
 
-
-get_scenario = get

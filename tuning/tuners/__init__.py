@@ -18,7 +18,7 @@ library such as `cma`. Either way a tuner must be deterministic given its seed a
 it is told: that is what makes resume-by-replay bit-identical.
 """
 
-from tuning.tuners.base import TUNERS, Evaluation, Query, Tuner, get, register
+from tuning.tuners.base import TUNERS, Evaluation, Query, Tuner, get, register, setting
 from tuning.tuners import ablation, adam, cma_slp, cmaes, random_search, screen_slp  # noqa: E402,F401  (the built-in tuners register themselves)
 
-__all__ = ["Evaluation", "Query", "TUNERS", "Tuner", "get", "register"]
+__all__ = ["Evaluation", "Query", "TUNERS", "Tuner", "get", "register", "setting"]

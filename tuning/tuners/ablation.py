@@ -21,6 +21,7 @@ from tuning.tuners.screen_slp import ScreenSLP
 class ScreenSLPFiniteDifferences(ScreenSLP):
     name = "screen-SLP/FD"
     description = "the ablation: screen-SLP with central differences instead of exact Jacobians"
+    plain_run = False  # a study's entrant, not a --method
     jacobian: str = "fd"
 
 
@@ -29,4 +30,8 @@ class ScreenSLPFiniteDifferences(ScreenSLP):
 class ScreenOnly(ScreenSLP):
     name = "screen only"
     description = "the ablation: screen-SLP's screen alone, continued until the clock ends"
-    steps: int = 0
+    plain_run = False  # it ends only when a budget does
+    local_solve = False
+
+    def plan_text(self, n_params, starts):
+        return f"a screen of {self._screen_text(starts)}, continued until the budget ends"

@@ -9,6 +9,7 @@ that held the grip at every training mass; those and the final iterates are its 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -16,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from coopjax.errors import InputError
 from tuning import constrained
 from tuning.problem import log_bounds
-from tuning.tuners.base import Query, Tuner, register
+from tuning.tuners.base import Query, Tuner, register, setting
 
-# Forward mode costs about one primal run per tuned parameter on top of the primal, reverse mode
-# (with per-step checkpointing) about 10 primal runs whatever the count, but compiles 2-3x longer:
-# measured, forward wins below 4 parameters and in short runs, reverse at 8 and 14 (docs/tuning.md).
+# Forward mode's cost grows with the number of tuned parameters, reverse mode's does not, but it
+# compiles longer: measured, forward wins below 4 parameters and in short runs, reverse at 8 and 14
+# (the derivative cost table of docs/tuning.md, `python -m benchmarks.derivative_cost`).
 AUTO_FORWARD_UP_TO = 4
 MODES = ("auto", "forward", "reverse")
 
@@ -55,14 +57,31 @@ class AdamAL(Tuner):
     description = "Adam on an augmented Lagrangian, exact gradients of the hard model, K starts in one batch"
     uses_gradient = True
     scalar = staticmethod(_lagrangian)
+    plain_run = True
 
-    steps: int = 40
-    mode: str = "auto"  # "forward", "reverse", or "auto": forward up to 4 parameters
-    learning_rate: float = 0.3  # log units: Adam moves each log-parameter by about this per step
+    steps: int = setting(40, "optimiser steps", "--steps")
+    mode: str = setting("auto", "forward, reverse, or auto: forward up to 4 parameters, reverse above", "--mode", MODES)
+    # Adam moves each log-parameter by about this per step.
+    learning_rate: float = setting(0.3, "peak learning rate, log units", "--lr")
     beta2: float = 0.9  # Adam's second-moment decay: short memory, as the penalty's scale changes (docs/tuning.md)
-    al_every: int = 3  # steps between multiplier updates
-    rho: float = 10.0  # the initial penalty, 1 / N (of objective per N^2 of grip shortfall)
+    al_every: int = setting(3, "steps between multiplier updates", "--al-every")
+    rho: float = setting(10.0, "initial penalty of the augmented Lagrangian, 1/N", "--rho")
     max_retries: int = 6  # consecutive rejections before a start is frozen
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise InputError(f"mode is {self.mode!r}: one of {', '.join(MODES)}", "mode")
+        for field in ("steps", "al_every"):
+            value = getattr(self, field)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise InputError(f"{field} is {value!r}: a whole number, at least 1", field)
+        for field in ("learning_rate", "rho"):
+            value = getattr(self, field)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InputError(f"{field} is {value!r}: it must be positive", field)
+
+    def history(self, state) -> dict:
+        return state.history
 
     def resolved_mode(self, n_params: int) -> str:
         if self.mode != "auto":

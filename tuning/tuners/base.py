@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import abc
+import dataclasses
+import inspect
 from typing import Any, Callable, ClassVar, NamedTuple
 
 import numpy as np
@@ -25,35 +28,57 @@ class Evaluation(NamedTuple):
     f: np.ndarray  # (C,) the problem's objective: smooth max of peak + w_lag x smooth max of lag, N
     c: np.ndarray  # (C, M) grip shortfall, N (0 while the grip holds)
     peak: np.ndarray  # (C, M) N
-    lag_mm: np.ndarray  # (C, M) mm
+    rms_lag: np.ndarray  # (C, M) m
     min_grip: np.ndarray  # (C, M) N
-    finite: np.ndarray  # (C,) every run finite (and f, c finite)
-    holds: np.ndarray  # (C,) finite, and the grip holds at every mass
+    valid: np.ndarray  # (C,) no run diverged, and f and c are finite
+    holds: np.ndarray  # (C,) valid, and the grip holds at every mass
     value: np.ndarray | None = None  # (C,) the tuner's scalar, with "gradient"
     gradient: np.ndarray | None = None  # (C, n), with "gradient"
-    jacobian: dict | None = None  # {"peak", "lag_mm", "c", "min_swi", "f"}: (C, M, n) ((C, n) for f), with "jacobian"
+    jacobian: dict | None = None  # {"peak", "rms_lag", "c", "min_swi", "f"}: (C, M, n) ((C, n) for f), with "jacobian"
     min_swi: np.ndarray | None = None  # (C, M) the grip margin: least Filippov weight over the grip window
 
 
-class Tuner:
-    """The interface every tuner implements (see the module docstring)."""
+def setting(default, help: str, flag: str | None = None, choices: tuple | None = None):
+    """A tuner's setting: a dataclass field whose metadata `coopjax tune` turns into a flag (the
+    same metadata `coopjax.Config` uses). `flag` None: not on the command line; `choices`: a closed set."""
+    return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices))
+
+
+class Tuner(abc.ABC):
+    """The interface every tuner implements (see the package docstring). A tuner is a frozen
+    dataclass whose fields are its settings (declared with `setting`); `register` refuses one
+    that leaves an abstract method out.
+
+    `tell` returns the next state; the driver logs and checkpoints states, so a tuner's state is
+    never changed in place after it is returned (copy, then change).
+    """
 
     name: ClassVar[str]
     description: ClassVar[str] = ""
     uses_gradient: ClassVar[bool] = False
+    # Whether `coopjax tune --method NAME` can run it: it ends on its own, not only when a budget does.
+    plain_run: ClassVar[bool] = False
 
+    @abc.abstractmethod
     def init(self, problem, starts: np.ndarray, seed: int):
-        raise NotImplementedError
+        """The first state, from the problem, the (K, n) log-parameter starts and the seed."""
 
+    @abc.abstractmethod
     def ask(self, state) -> Query | None:
-        raise NotImplementedError
+        """What to evaluate next; None when the tuner is done."""
 
+    @abc.abstractmethod
     def tell(self, state, query: Query, evaluation: Evaluation):
-        raise NotImplementedError
+        """The next state, after the evaluation of `query`."""
 
+    @abc.abstractmethod
     def candidates(self, state) -> list[np.ndarray]:
         """Log-parameter vectors worth validating, in the tuner's order of preference."""
-        raise NotImplementedError
+
+    def history(self, state) -> dict:
+        """Per step, what the history figure of `coopjax tune` shows: lists under `step`, `f` (or
+        `phi`), `holds` and `shortfall` (or `margin`). {}: the tuner keeps none (no figure lines)."""
+        return {}
 
     # What `coopjax tune` prints; a tuner may say more.
     def plan_text(self, n_params: int, starts: int) -> str:
@@ -77,7 +102,14 @@ TUNERS: dict[str, type[Tuner]] = {}
 
 
 def register(cls: type[Tuner]) -> type[Tuner]:
-    """Class decorator: make a tuner known by name to `coopjax tune`, the race and the plots."""
+    """Class decorator: make a tuner known by name to `coopjax tune`, the race and the plots. An
+    incomplete tuner is refused here, not at its first call."""
+    missing = ([] if hasattr(cls, "name") else ["name"]) + sorted(getattr(cls, "__abstractmethods__", ()))
+    if not (inspect.isclass(cls) and issubclass(cls, Tuner)) or missing:
+        raise TypeError(f"{getattr(cls, '__name__', cls)!r} is not a complete tuner: it must subclass Tuner and "
+                        f"define {', '.join(missing) or 'name, init, ask, tell and candidates'}")
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"tuner {cls.name!r} must be a dataclass: its fields are its settings")
     if cls.name in TUNERS and TUNERS[cls.name] is not cls:
         raise ValueError(f"a tuner named {cls.name!r} is already registered")
     TUNERS[cls.name] = cls

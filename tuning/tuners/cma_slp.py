@@ -98,7 +98,7 @@ class CMAESPolished(Tuner):
 
     def _tell_jacobian(self, state, query, ev):
         out = _outputs(ev)
-        ok = bool(ev.finite[0]) and all(np.isfinite(v).all() for v in out.values())
+        ok = bool(ev.valid[0]) and all(np.isfinite(v).all() for v in out.values())
         phi = float(self._phi(out, state.problem)[0]) if ok else np.inf
         self._keep(state, bool(ev.holds[0]), phi, state.theta)
         for key, value in (("step", len(state.history["step"])), ("f", [float(ev.f[0])]), ("holds", [bool(ev.holds[0])]),
@@ -120,7 +120,7 @@ class CMAESPolished(Tuner):
 
     def _tell_trials(self, state, query, ev):
         out = _outputs(ev)
-        ok = ev.finite & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
+        ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
         phi = np.where(ok, self._phi(out, state.problem), np.inf)
         j, state.radius = trust_update(self, state.theta, state.radius, state.trials, state.predicted,
                                        state.current["phi"], phi, ok)
@@ -139,6 +139,9 @@ class CMAESPolished(Tuner):
     def _keep(state, holds, phi, theta):
         if np.isfinite(phi) and (holds, -phi) > (state.best[0], -state.best[1]):
             state.best = (holds, phi, np.asarray(theta).copy())
+
+    def history(self, state) -> dict:
+        return state.history
 
     def candidates(self, state):
         polished = [state.best[2]] if state.best[2] is not None else []

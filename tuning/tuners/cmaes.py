@@ -1,5 +1,6 @@
 """CMA-ES (the `cma` package) in log space, with the grip constraint handled by cma's own
-augmented Lagrangian (`cma.ConstrainedFitnessAL`), and IPOP restarts. It writes no log files.
+augmented Lagrangian (`cma.ConstrainedFitnessAL`), and IPOP restarts. It writes no log files and
+changes neither the working folder nor anything outside cma.
 
 Each generation of `popsize` candidates is one batch, on the gradient tuner's mass draws: generation
 g sees the masses of step g. A diverged run is infeasible and bad, not missing. The population is
@@ -10,9 +11,8 @@ starts, which every tuner shares.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import os
-import tempfile
 import warnings
 
 import numpy as np
@@ -22,6 +22,23 @@ from tuning.problem import log_bounds
 from tuning.tuners.base import Query, Tuner, register
 
 BAD = 1e6  # the objective given to CMA-ES for a candidate whose run diverged
+
+
+@contextlib.contextmanager
+def _silent_constraint_loggers():
+    """cma's augmented Lagrangian builds its loggers, and their folder outcmaes/ in the working
+    folder, before it applies `logging=0`. cma's constraints handler names its own switch for that
+    (its module's `_Logger`, to be replaced by `cma.logger.LoggerDummy`): set here only while the
+    Lagrangian is built. It touches cma alone; with logging=0 the loggers are never called."""
+    import cma.constraints_handler as handler
+    import cma.logger
+
+    kept = handler._Logger
+    handler._Logger = cma.logger.LoggerDummy
+    try:
+        yield
+    finally:
+        handler._Logger = kept
 
 
 def strategy(x0, sigma0, lo, hi, seed, popsize=None):
@@ -73,15 +90,8 @@ class CMAES(Tuner):
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
             fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0,
                                            dimension=len(x0))
-        # cma builds its augmented Lagrangian's loggers (and their folder, outcmaes/) where the process
-        # stands before it applies logging=0: build it in a scratch folder, then again without loggers.
-        with tempfile.TemporaryDirectory() as scratch:
-            here = os.getcwd()
-            os.chdir(scratch)
-            try:
-                fun.al._init_()
-            finally:
-                os.chdir(here)
+        with _silent_constraint_loggers():
+            fun.al  # noqa: B018  (built now, while its loggers are silent)
         fun.cache = cache
         return es, fun
 
@@ -100,14 +110,14 @@ class CMAES(Tuner):
 
     def tell(self, state, query, ev):
         X, cache = query.thetas, state.fun.cache
-        for x, fi, ci, ok in zip(X, ev.f, ev.c, ev.finite):
+        for x, fi, ci, ok in zip(X, ev.f, ev.c, ev.valid):
             cache[tuple(x)] = (float(fi) if ok else BAD, list(np.where(np.isfinite(ci), ci, BAD)))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # its AL warns about every interquartile range it adapts
             state.es.tell(list(X), [state.fun(x) for x in X])
             state.fun.update(state.es)
         cache.clear()
-        for x, f, h, ok in zip(X, ev.f, ev.holds, ev.finite):
+        for x, f, h, ok in zip(X, ev.f, ev.holds, ev.valid):
             if ok and (not state.best or (bool(h), -float(f)) > tuple(state.best[:2])):
                 state.best = [bool(h), -float(f), np.asarray(x)]
         state.generation += 1

@@ -39,7 +39,7 @@ class RandomSearch(Tuner):
                      state.problem.training_masses(state.seed, state.generation))
 
     def tell(self, state, query, ev):
-        for x, f, h, ok in zip(query.thetas, ev.f, ev.holds, ev.finite):
+        for x, f, h, ok in zip(query.thetas, ev.f, ev.holds, ev.valid):
             if ok and (not state.best or (bool(h), -float(f)) > tuple(state.best[:2])):
                 state.best = [bool(h), -float(f), np.asarray(x)]
         state.generation += 1

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import linprog
@@ -49,7 +50,7 @@ from scipy.stats import qmc
 
 from coopjax.errors import InputError
 from tuning.problem import grid, log_bounds
-from tuning.tuners.base import Evaluation, Query, Tuner, register
+from tuning.tuners.base import Evaluation, Query, Tuner, register, setting
 from tuning.tuners.cmaes import strategy
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
@@ -154,10 +155,11 @@ def diverse_best(thetas, phi, count, distance):
 
 
 def _outputs(ev) -> dict:
-    out = {"peak": ev.peak, "lag": ev.lag_mm, "c": ev.c, "swi": ev.min_swi}
+    # The merit prices the lag per mm (w_lag is N per mm): its "lag" is the RMS lag in mm.
+    out = {"peak": ev.peak, "lag": 1e3 * ev.rms_lag, "c": ev.c, "swi": ev.min_swi}
     if ev.jacobian is not None:
         J = ev.jacobian
-        out |= {"J_peak": J["peak"], "J_lag": J["lag_mm"], "J_c": J["c"], "J_swi": J["min_swi"]}
+        out |= {"J_peak": J["peak"], "J_lag": 1e3 * J["rms_lag"], "J_c": J["c"], "J_swi": J["min_swi"]}
     return out
 
 
@@ -168,11 +170,11 @@ def _central_differences(query, ev, K, h):
     rows = lambda x: x.reshape((K, 2 * n + 1) + x.shape[1:])
     centre = lambda x: rows(x)[:, 0]
     slope = lambda x: np.moveaxis((rows(x)[:, 1:n + 1] - rows(x)[:, n + 1:]) / (2 * h), 1, -1)
-    finite = rows(ev.finite).all(1)
-    jac = {"peak": slope(ev.peak), "lag_mm": slope(ev.lag_mm), "c": slope(ev.c), "min_swi": slope(ev.min_swi),
+    valid = rows(ev.valid).all(1)
+    jac = {"peak": slope(ev.peak), "rms_lag": slope(ev.rms_lag), "c": slope(ev.c), "min_swi": slope(ev.min_swi),
            "f": slope(ev.f)}
-    lanes = Evaluation(f=centre(ev.f), c=centre(ev.c), peak=centre(ev.peak), lag_mm=centre(ev.lag_mm),
-                       min_grip=centre(ev.min_grip), finite=finite, holds=centre(ev.holds) & finite, jacobian=jac,
+    lanes = Evaluation(f=centre(ev.f), c=centre(ev.c), peak=centre(ev.peak), rms_lag=centre(ev.rms_lag),
+                       min_grip=centre(ev.min_grip), valid=valid, holds=centre(ev.holds) & valid, jacobian=jac,
                        min_swi=centre(ev.min_swi))
     return Query(centre(query.thetas), query.masses, "jacobian"), lanes
 
@@ -189,16 +191,20 @@ class ScreenSLP(Tuner):
     description = ("a batched screen (CMA-ES generations), then trust-region linear programs on the worst case's "
                    "epigraph with exact Jacobians (forward mode)")
     uses_gradient = True
+    plain_run = True
+    # False: no local solve; the screen goes on, batch after batch, until the budget ends (`ScreenOnly`).
+    local_solve: ClassVar[bool] = True
 
-    screen: int = 512  # points of the screen besides the given starts (Sobol: a power of 2)
+    screen: int = setting(512, "points screened in the box x/÷ e^SPREAD around the first start, besides the starts "
+                          "(Sobol: a power of 2)", "--screen")
     spread: float = 2.5  # the screen's box: x/÷ e^spread around the first start, within the search box
-    search: str = "cma"  # the screen's points after its first batch: CMA-ES generations ("cma") or Sobol
+    search: str = setting("cma", "the screen's points after its first batch: CMA-ES generations (cma) or Sobol "
+                          "points (sobol)", "--search", ("cma", "sobol"))
     sigma0: float = 1.0  # search="cma": CMA-ES's initial step, log units
-    local: int = 8  # local solves side by side (lanes of one batch)
+    local: int = setting(8, "local solves run side by side (lanes of one batch)", "--local")
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
     diverse: float = 0.5  # least distance between two local starts, log units (max norm)
-    steps: int = 12  # local iterations: Jacobian evaluations of every lane (0: no local solve; the screen
-    # goes on, batch after batch, until the budget ends)
+    steps: int = setting(12, "Jacobian steps of the local solves", "--steps")
     radius: float = 0.25  # initial trust region, log units
     radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
     max_radius: float = 1.0
@@ -214,11 +220,20 @@ class ScreenSLP(Tuner):
     def _phi(self, out, problem):
         return merit(out, problem.w_lag, self.penalty, self.swi_penalty, self.swi_margin)
 
-    def init(self, problem, starts, seed):
+    def __post_init__(self):
         if self.jacobian not in ("exact", "fd"):
             raise InputError(f"jacobian is {self.jacobian!r}: exact or fd", "jacobian")
         if self.search not in SEARCHES:
             raise InputError(f"search is {self.search!r}: {' or '.join(SEARCHES)}", "search")
+        for field, least in (("screen", 0), ("steps", 1), ("local", 1)):
+            value = getattr(self, field)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise InputError(f"{field} is {value!r}: a whole number, at least {least}", field)
+
+    def history(self, state) -> dict:
+        return state.history
+
+    def init(self, problem, starts, seed):
         lo, hi = log_bounds(problem.names)
         starts = np.clip(np.asarray(starts, np.float64), lo, hi)
         masses = grid(problem.training_range, problem.n_masses)
@@ -313,7 +328,7 @@ class ScreenSLP(Tuner):
 
     def _ok_phi(self, state, ev):
         out = _outputs(ev)
-        ok = ev.finite & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
+        ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
         return out, ok, np.where(ok, self._phi(out, state.problem), np.inf)
 
     def _tell_screen(self, state, query, ev):
@@ -340,7 +355,7 @@ class ScreenSLP(Tuner):
         state.lane = list(range(K))
         state.screened = {"points": len(query.thetas), "finite": int(ok.sum()), "holding": int((ok & ev.holds).sum()),
                           "best_phi": float(np.min(phi)) if ok.any() else None}
-        state.phase = "jacobian" if self.steps > 0 else "screen only"
+        state.phase = "jacobian" if self.local_solve else "screen only"
         return state
 
     def _keep_best(self, state, k, holds, phi, theta):

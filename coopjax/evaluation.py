@@ -1,0 +1,84 @@
+"""The one evaluation path of sweeps and the tuner's judge: a batch of parameter sets in, per sample
+the metrics with their status out.
+
+`evaluate` runs the batch on every local device, checks each sample's step against its linearised
+loop and, on request, runs it again at dt / 2 (`coopjax.step_check`); the status (`coopjax.status`)
+says which of those failed, most basic cause first. Columns are float64 numpy arrays.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+
+from coopjax import devices, stability, step_check
+from coopjax.config import Config
+from coopjax.params import Params
+from coopjax.simulation import metrics_of
+from coopjax.status import LABELS, Status
+
+# Every sample's bookkeeping beside its metrics, with its unit or meaning.
+BOOKKEEPING = {
+    "finite": "1 if the run did not diverge, else 0",
+    "t_diverged": "s (NaN if it did not)",
+    "dt_limit": "s, the largest stable step of the linearised loop",
+    "status": "|".join(LABELS),
+}
+STEP_ERROR = {"step_error": "tolerances: the two-step check's largest disagreement between dt and dt/2 "
+                            "(above 1: step_artefact)"}
+
+
+def columns(config: Config, check_step: bool = False) -> tuple[str, ...]:
+    """What `evaluate` returns, in order: the configured metrics, then the bookkeeping (and the
+    two-step check's column if asked for)."""
+    return tuple(config.metrics) + tuple(BOOKKEEPING) + (tuple(STEP_ERROR) if check_step else ())
+
+
+def block_size(n: int) -> int:
+    """Samples per device per call for a batch of n: a power of two up to `devices.BLOCK`, fixed by
+    n alone (so a sweep's compiled per-device program does not depend on its chunking)."""
+    return int(min(devices.BLOCK, 2 ** math.ceil(math.log2(max(n, 8)))))
+
+
+def significant(x: np.ndarray, digits: int) -> np.ndarray:
+    """x to `digits` significant digits. The step limit is an eigenvalue estimate: the two robots'
+    nearly repeated poles make it move by ~1e-7 with rounding (sqrt of machine epsilon), for example
+    between a one- and a two-process run, so more digits would be noise."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = 10.0 ** (np.floor(np.log10(np.abs(x))) - digits + 1)
+        return np.where(np.isfinite(x) & (x != 0), np.round(x / scale) * scale, x)
+
+
+def evaluate(params: Params, config: Config, *, check_step: bool = False, block: int | None = None) -> dict:
+    """Per sample of the batch `params` (leaves with a trailing batch axis), the columns
+    `columns(config, check_step)` as float64 arrays; `status` holds `Status` codes.
+
+    Args:
+      params: a batch of parameter sets (`make_params` with 1-D values); cast to the config's dtype.
+      config: how every sample runs (validated by the caller).
+      check_step: run every sample again at dt / 2: a `step_error` column, and status
+        `step_artefact` where the answers move by more than a tolerance. It triples the cost.
+      block: samples per device per call (None: `block_size` of the batch).
+    """
+    params = config.cast(params)
+    block = block or block_size(params.batch_shape[0])
+    limit, growth = stability.stable_dt(params, config)
+    limit = significant(limit, 6)
+    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block)
+    out = {n: np.asarray(v, np.float64) for n, v in zip(metrics._fields, jax.device_get(list(metrics)))}
+    diverged = out["finite"] < 0.5
+    # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of unknown
+    # cause (`t_diverged` says when any of them blew up).
+    status = np.select([growth > 0, config.dt > limit, diverged],
+                       [Status.UNSTABLE_LOOP, Status.STEP_BEYOND_LIMIT, Status.DIVERGED], Status.OK)
+    out["dt_limit"] = limit
+    if check_step:
+        fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block)
+        error = step_check.step_error({n: out[n] for n in step_check.METRICS},
+                                      {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS})
+        status = np.where((status == Status.OK) & step_check.artefacts(error), Status.STEP_ARTEFACT, status)
+        out["step_error"] = error
+    out["status"] = status.astype(np.float64)
+    return {name: out[name] for name in columns(config, check_step)}
