@@ -152,3 +152,22 @@ def test_parquet_output_and_from_table_round_trip(fresh_dir):
     np.testing.assert_allclose(again["peak_grip"], frame["peak_grip"], rtol=1e-9)
     api = cj.sweep("paper", table={"M_b": frame["M_b"].to_numpy()}, T=1.0, dtype="float32")
     np.testing.assert_allclose(api["peak_grip"], frame["peak_grip"], rtol=1e-9)
+
+
+def test_one_status_vocabulary_with_a_message_each():
+    from coopjax.status import LABELS, MESSAGES, Status, codes, labels
+
+    assert set(MESSAGES) == set(Status) and all(MESSAGES[s] for s in Status)
+    assert LABELS == ("ok", "diverged", "unstable_loop", "step_beyond_limit", "step_artefact")
+    assert labels(codes(np.array(LABELS))).tolist() == list(LABELS)
+    assert [s.measured for s in Status] == [True, False, False, False, True]
+    # The bookkeeping's help names every label, and a metric cannot take a status column's name.
+    assert sweeps.column_units()["status"] == "|".join(LABELS)
+    from coopjax import objectives
+
+    with pytest.raises(ValueError, match="reported by every run"):
+        objectives.register(objectives.Metric("status", "1", "x", lambda b, d, c: 0, lambda a, o, p, c: a,
+                                              lambda a, c: a))
+    # A run's own metrics speak it too: OK, or DIVERGED where the run did not stay finite.
+    m = cj.simulate(cj.make_params(K_GP=np.array([0.5, 100.0])), "paper", T=1.5, integrator="rk4", check_dt=False).metrics
+    assert [Status(int(s)) for s in m.status] == [Status.OK, Status.DIVERGED]

@@ -1,6 +1,8 @@
 """Tuning on the hard model: the constrained objective's gradients, the augmented Lagrangian on a
 problem with a known answer, K starts against K single runs, resume by replay, rejected steps."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -134,6 +136,8 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
     from tuning.tuners.cmaes import CMAES
 
     monkeypatch.chdir(tmp_path)
+    # No process-wide side effect: the working folder is never changed (a background thread shares it).
+    monkeypatch.setattr(os, "chdir", lambda *a: pytest.fail("the CMA-ES tuner changed the working folder"))
     tuner = CMAES()
     state = tuner.init(pb.Problem(names=("K_GP", "K_GI"), n_masses=2), np.log([[0.5, 0.1], [0.2, 0.05]]), 0)
     first = state.popsize
@@ -146,3 +150,7 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
                                                     min_grip=zeros, valid=np.ones(C, bool), holds=(c == 0).all(1)))
     assert state.restarts >= 1 and state.popsize == first * 2**state.restarts
     assert list(tmp_path.iterdir()) == []  # cma's loggers wrote nothing, not even their folder
+    import cma.constraints_handler
+    import cma.logger
+
+    assert cma.constraints_handler._Logger is not cma.logger.LoggerDummy  # cma's own switch is put back
