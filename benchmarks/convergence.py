@@ -2,7 +2,8 @@
 and (with --derivatives) its derivatives.
 
     python -m benchmarks.convergence [--quick] [--out benchmarks/convergence.json] [--plot docs/convergence.png]
-    python -m benchmarks.convergence --derivatives [--n 64] [--out benchmarks/derivatives.json] [--plot docs/derivatives.png]
+    python -m benchmarks.convergence --derivatives [--n 64] [--out benchmarks/derivatives.json]
+        [--plot docs/derivatives.png]
     python -m benchmarks.convergence --readme-gradient
     python -m benchmarks.convergence --step-check [--n 2048]
     python -m benchmarks.convergence --artefact-search
@@ -110,7 +111,12 @@ def trajectories_per_second(integrator: str, dt: float, batch: int, repeats: int
 
 GAINS = ("K_GP", "K_GI", "tau", "G_e")
 OUTPUTS = ("min_grip", "peak_grip", "rms_lag", "shortfall")
-FLOOR = {"min_grip": 1.0, "peak_grip": 1.0, "rms_lag": 1e-3, "shortfall": 1.0}  # N, N, m, N: the elasticity's scale floor
+FLOOR = {
+    "min_grip": 1.0,
+    "peak_grip": 1.0,
+    "rms_lag": 1e-3,
+    "shortfall": 1.0,
+}  # N, N, m, N: the elasticity's scale floor
 SHORTFALL_EPS = 0.01  # N: shortfall = sqrt(slip + eps^2) - eps, the tuner's grip constraint
 WIDTHS = (1e-2, 3e-3)  # secant half-widths in log gain
 AGREE = (0.10, 0.01)  # relative, absolute (elasticity)
@@ -197,11 +203,22 @@ def derivative_study(n: int, ref_dt: float, dts=STUDY_DTS, log=print) -> dict:
     start = time.perf_counter()
     ref_values = np.asarray(study_outputs(theta, masses, ref_dt))
     secants = secant_derivatives(theta, masses, ref_dt)
-    log(f"reference: central secants of filippov at dt = {ref_dt:g} s, widths {WIDTHS} in log gain "
-        f"({time.perf_counter() - start:.0f} s)")
-    result = {"n": n, "ref_dt": ref_dt, "widths": WIDTHS, "agree": AGREE, "gains": GAINS, "outputs": OUTPUTS,
-              "masses": masses.tolist(), "gains_log": theta.tolist(), "rows": [],
-              "machine": {"jax": jax.__version__, "devices": jax.device_count()}}
+    log(
+        f"reference: central secants of filippov at dt = {ref_dt:g} s, widths {WIDTHS} in log gain "
+        f"({time.perf_counter() - start:.0f} s)"
+    )
+    result = {
+        "n": n,
+        "ref_dt": ref_dt,
+        "widths": WIDTHS,
+        "agree": AGREE,
+        "gains": GAINS,
+        "outputs": OUTPUTS,
+        "masses": masses.tolist(),
+        "gains_log": theta.tolist(),
+        "rows": [],
+        "machine": {"jax": jax.__version__, "devices": jax.device_count()},
+    }
     log(f"{'dt [s]':>8} {'output':>10} {'agree':>7} {'entries':>8} {'wrong sign':>11}")
     for dt in dts:
         start = time.perf_counter()
@@ -211,8 +228,13 @@ def derivative_study(n: int, ref_dt: float, dts=STUDY_DTS, log=print) -> dict:
         for j, name in enumerate(OUTPUTS + ("all",)):
             pick = (slice(None), slice(None)) if name == "all" else (slice(None), j)
             counted = c["smooth"][pick]
-            row = {"dt": dt, "output": name, "entries": int(counted.sum()),
-                   "agree": float(c["agrees"][pick][counted].mean()), "wrong_sign": int(c["wrong_sign"][pick].sum())}
+            row = {
+                "dt": dt,
+                "output": name,
+                "entries": int(counted.sum()),
+                "agree": float(c["agrees"][pick][counted].mean()),
+                "wrong_sign": int(c["wrong_sign"][pick].sum()),
+            }
             result["rows"].append(row)
             log(f"{dt:8g} {name:>10} {row['agree']:7.1%} {row['entries']:8d} {row['wrong_sign']:11d}")
         result[f"dt={dt:g}"] = {k: v.tolist() for k, v in c.items()} | {"seconds": elapsed}
@@ -253,8 +275,13 @@ def readme_gradient(dts=(2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4), at=0.5, log=print) -> 
         _, ad = jax.jvp(lambda k: readme_terms(k, dt), (jnp.array([at]),), (jnp.array([1.0]),))
         secants = central_secants(readme_terms, at, dt)
         rows.append({"dt": dt, "ad": np.asarray(ad)[0].tolist(), "secants": secants.tolist()})
-        log(f"{dt:8g} " + " ".join(f"{float(ad[0, j]):+12.4f} {secants[0, j]:+8.4f}/{secants[1, j]:+8.4f}"
-                                  for j in range(len(README_TERMS))))
+        log(
+            f"{dt:8g} "
+            + " ".join(
+                f"{float(ad[0, j]):+12.4f} {secants[0, j]:+8.4f}/{secants[1, j]:+8.4f}"
+                for j in range(len(README_TERMS))
+            )
+        )
     return {"terms": README_TERMS, "K_GP": at, "rows": rows}
 
 
@@ -280,27 +307,49 @@ def step_check_study(n: int, dt: float = 1e-3, ref_dt: float = 1e-4, log=print) 
     passed = np.asarray(cols["status"]) == "ok"
     # Every row at the limit: what the check flags, and what it lets through.
     table = {k: np.asarray(cols[k]) for k in (*STUDY_BOX, "M_b")}
-    limit = {k: np.asarray(v) for k, v in sweeps.run(sweeps.make_spec("carry", n=None, vary={}, fixed={}, seed=0, table=table, dt=ref_dt)).items()}
+    limit = {
+        k: np.asarray(v)
+        for k, v in sweeps.run(
+            sweeps.make_spec("carry", n=None, vary={}, fixed={}, seed=0, table=table, dt=ref_dt)
+        ).items()
+    }
     wrong_all = _wrong({k: np.asarray(cols[k]) for k in TOLERANCE}, limit)
     wrong = wrong_all[flagged]
     error = np.asarray(cols["step_error"], float)
-    result = {"n": n, "dt": dt, "ref_dt": ref_dt, "flagged": int(flagged.sum()), "flagged_wrong_at_dt": int(wrong.sum()),
-              "ok_wrong_at_dt": int((wrong_all & passed).sum()),
-              "wrong_where_the_grip_holds": int((wrong_all & (limit["min_grip"] >= F_LIM - TOLERANCE["min_grip"])).sum()),
-              "median_step_error_ok": float(np.median(error[passed])), "p99_step_error_ok": float(np.percentile(error[passed], 99)),
-              "status_counts": {str(k): int(v) for k, v in zip(*np.unique(np.asarray(cols["status"]), return_counts=True))},
-              "seconds": {"unchecked": seconds[False], "checked": seconds[True]}}
-    log(f"{n} rows at dt = {dt:g}: {result['flagged']} flagged step_artefact, of which {result['flagged_wrong_at_dt']} "
+    result = {
+        "n": n,
+        "dt": dt,
+        "ref_dt": ref_dt,
+        "flagged": int(flagged.sum()),
+        "flagged_wrong_at_dt": int(wrong.sum()),
+        "ok_wrong_at_dt": int((wrong_all & passed).sum()),
+        "wrong_where_the_grip_holds": int((wrong_all & (limit["min_grip"] >= F_LIM - TOLERANCE["min_grip"])).sum()),
+        "median_step_error_ok": float(np.median(error[passed])),
+        "p99_step_error_ok": float(np.percentile(error[passed], 99)),
+        "status_counts": {str(k): int(v) for k, v in zip(*np.unique(np.asarray(cols["status"]), return_counts=True))},
+        "seconds": {"unchecked": seconds[False], "checked": seconds[True]},
+    }
+    log(
+        f"{n} rows at dt = {dt:g}: {result['flagged']} flagged step_artefact, of which {result['flagged_wrong_at_dt']} "
         f"miss the limit (filippov at {ref_dt:g}) by more than a tolerance; of the rows ok, {result['ok_wrong_at_dt']} "
-        f"miss it; {result['wrong_where_the_grip_holds']} of all that miss it hold the grip in the limit; rows ok: median step_error "
+        f"miss it; {result['wrong_where_the_grip_holds']} of all that miss it hold the grip in the limit; rows "
+        f"ok: median step_error "
         f"{result['median_step_error_ok']:.3g}, 99th percentile {result['p99_step_error_ok']:.3g}; statuses "
         f"{result['status_counts']}; {seconds[True]:.1f} s checked against {seconds[False]:.1f} s unchecked "
-        f"(x{seconds[True] / seconds[False]:.2f}, compile included)")
+        f"(x{seconds[True] / seconds[False]:.2f}, compile included)"
+    )
     return result
 
 
-def artefact_search(dt: float = 5e-3, mass: float = 4.0, rounds: int = 4, population: int = 1024, seed: int = 0,
-                    ref_dts=(1e-4, 5e-5), log=print) -> dict:
+def artefact_search(
+    dt: float = 5e-3,
+    mass: float = 4.0,
+    rounds: int = 4,
+    population: int = 1024,
+    seed: int = 0,
+    ref_dts=(1e-4, 5e-5),
+    log=print,
+) -> dict:
     """Optimise against one step on purpose: a cross-entropy search over the 8 per-robot gains (log
     box of the derivative study) on peak + 1.5 x lag in mm, the grip held (min grip within 0.05 N of
     F_lim) and dt within the linearised stability limit, at one mass. Those of its 64 best that
@@ -322,7 +371,12 @@ def artefact_search(dt: float = 5e-3, mass: float = 4.0, rounds: int = 4, popula
     def score(x):
         m, p = metrics(x, dt)
         limit, growth = stability.stable_dt(p, cj.Config("carry"))
-        ok = m["finite"] & (m["min_grip"] >= F_LIM - TOLERANCE["min_grip"]) & (np.asarray(limit) >= dt) & (np.asarray(growth) == 0)
+        ok = (
+            m["finite"]
+            & (m["min_grip"] >= F_LIM - TOLERANCE["min_grip"])
+            & (np.asarray(limit) >= dt)
+            & (np.asarray(growth) == 0)
+        )
         return np.where(ok, m["peak_grip"] + 1.5e3 * m["rms_lag"], np.inf)
 
     mean, spread = (lo + hi) / 2, (hi - lo) / 2
@@ -332,7 +386,7 @@ def artefact_search(dt: float = 5e-3, mass: float = 4.0, rounds: int = 4, popula
             x = np.clip(mean + spread * rng.standard_normal((population, len(names))), lo, hi)
         s = score(x)
         order = np.argsort(s)
-        elite = x[order[:population // 10]]
+        elite = x[order[: population // 10]]
         mean, spread = elite.mean(0), elite.std(0) + 1e-3
     best = x[order[:64]]
     best = best[np.isfinite(s[order[:64]])]
@@ -343,17 +397,35 @@ def artefact_search(dt: float = 5e-3, mass: float = 4.0, rounds: int = 4, popula
     flagged = step_check.artefacts(step_check.step_error(coarse, half))
     rows = []
     for i in np.nonzero(wrong | flagged)[0]:
-        rows.append({"rank": int(i), "gains": dict(zip(names, np.exp(best[i]).tolist())),
-                     "at_dt": {k: float(coarse[k][i]) for k in TOLERANCE},
-                     "limit": [{k: float(lim[k][i]) for k in TOLERANCE} for lim in limits],
-                     "wrong_at_dt": bool(wrong[i]), "flagged": bool(flagged[i])})
-        log(f"rank {i}: at dt = {dt:g} peak {coarse['peak_grip'][i]:.1f} N, lag {coarse['rms_lag'][i] * 1e3:.2f} mm; "
+        rows.append(
+            {
+                "rank": int(i),
+                "gains": dict(zip(names, np.exp(best[i]).tolist())),
+                "at_dt": {k: float(coarse[k][i]) for k in TOLERANCE},
+                "limit": [{k: float(lim[k][i]) for k in TOLERANCE} for lim in limits],
+                "wrong_at_dt": bool(wrong[i]),
+                "flagged": bool(flagged[i]),
+            }
+        )
+        log(
+            f"rank {i}: at dt = {dt:g} peak {coarse['peak_grip'][i]:.1f} N, lag {coarse['rms_lag'][i] * 1e3:.2f} mm; "
             f"limit peak {limits[0]['peak_grip'][i]:.1f} N, lag {limits[0]['rms_lag'][i] * 1e3:.2f} mm; "
-            f"{'wrong' if wrong[i] else 'right'} at dt, {'flagged' if flagged[i] else 'not flagged'} by the two-step check")
-    log(f"{len(best)} best candidates at dt = {dt:g}: {int(wrong.sum())} miss the limit by more than a tolerance, "
-        f"the two-step check flags {int(flagged.sum())} ({int((wrong & flagged).sum())} of the wrong ones)")
-    return {"dt": dt, "mass": mass, "candidates": len(best), "wrong": int(wrong.sum()), "flagged": int(flagged.sum()),
-            "wrong_and_flagged": int((wrong & flagged).sum()), "rows": rows}
+            f"{'wrong' if wrong[i] else 'right'} at dt, {'flagged' if flagged[i] else 'not flagged'} by the "
+            f"two-step check"
+        )
+    log(
+        f"{len(best)} best candidates at dt = {dt:g}: {int(wrong.sum())} miss the limit by more than a tolerance, "
+        f"the two-step check flags {int(flagged.sum())} ({int((wrong & flagged).sum())} of the wrong ones)"
+    )
+    return {
+        "dt": dt,
+        "mass": mass,
+        "candidates": len(best),
+        "wrong": int(wrong.sum()),
+        "flagged": int(flagged.sum()),
+        "wrong_and_flagged": int((wrong & flagged).sum()),
+        "rows": rows,
+    }
 
 
 def plot_derivatives(result: dict, path: str) -> None:
@@ -379,14 +451,18 @@ def plot_derivatives(result: dict, path: str) -> None:
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)
         row = next(r for r in result["rows"] if r["dt"] == dt and r["output"] == "all")
-        ax.set_title(f"AD at dt = {dt:g} s: {row['agree']:.1%} of {row['entries']} agree, {row['wrong_sign']} wrong sign",
-                     fontsize=10)
+        ax.set_title(
+            f"AD at dt = {dt:g} s: {row['agree']:.1%} of {row['entries']} agree, {row['wrong_sign']} wrong sign",
+            fontsize=10,
+        )
         ax.set_xlabel(f"secant of the converged model (dt = {result['ref_dt']:g} s), elasticity")
         ax.set_ylabel("AD derivative, elasticity")
         ax.grid(True, alpha=0.3)
     axes[0][0].legend(fontsize=8, title="circled: disagrees", title_fontsize=8)
-    fig.suptitle(f"Derivatives of the hard carry model: {result['n']} (gain set, mass) samples, d output / d log gain",
-                 fontsize=11)
+    fig.suptitle(
+        f"Derivatives of the hard carry model: {result['n']} (gain set, mass) samples, d output / d log gain",
+        fontsize=11,
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -398,15 +474,28 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", default=None, help="default docs/convergence.png (derivatives.png)")
     parser.add_argument("--batch", type=int, default=64, help="batch for the trajectories-per-second figure")
     parser.add_argument("--derivatives", action="store_true", help="the derivative study instead of the value study")
-    parser.add_argument("--n", type=int, default=None,
-                        help="derivative study: (gain set, mass) samples (default 64); step check: rows (default 2048)")
+    parser.add_argument(
+        "--n",
+        type=int,
+        default=None,
+        help="derivative study: (gain set, mass) samples (default 64); step check: rows (default 2048)",
+    )
     parser.add_argument("--ref-dt", type=float, default=1e-4, help="derivative study: the converged model's step")
-    parser.add_argument("--readme-gradient", action="store_true",
-                        help="the README's gradient example and each of its terms, AD against secants, dt 2e-3 to 1e-4")
-    parser.add_argument("--step-check", action="store_true",
-                        help="the two-step check on a sweep of --n random rows (default 2048 here): flags, cost, against the limit")
-    parser.add_argument("--artefact-search", action="store_true",
-                        help="optimise against dt = 5e-3 on purpose and judge the 64 best against the limit and the check")
+    parser.add_argument(
+        "--readme-gradient",
+        action="store_true",
+        help="the README's gradient example and each of its terms, AD against secants, dt 2e-3 to 1e-4",
+    )
+    parser.add_argument(
+        "--step-check",
+        action="store_true",
+        help="the two-step check on a sweep of --n random rows (default 2048 here): flags, cost, against the limit",
+    )
+    parser.add_argument(
+        "--artefact-search",
+        action="store_true",
+        help="optimise against dt = 5e-3 on purpose and judge the 64 best against the limit and the check",
+    )
     args = parser.parse_args(argv)
 
     import jax
@@ -444,14 +533,18 @@ def main(argv=None) -> int:
     limits = {k: run(columns, k, dt) for k, dt in LIMIT_DT.items()}
     agree = errors(limits["rk4"], limits["filippov"])
     routes_agree = passes(agree)
-    print(f"the dt -> 0 limit: filippov at {LIMIT_DT['filippov']:g} s against rk4 at {LIMIT_DT['rk4']:g} s "
-          f"({time.perf_counter() - start:.0f} s)")
+    print(
+        f"the dt -> 0 limit: filippov at {LIMIT_DT['filippov']:g} s against rk4 at {LIMIT_DT['rk4']:g} s "
+        f"({time.perf_counter() - start:.0f} s)"
+    )
     print(f"{'sample':<22} {'min grip':>9} {'peak':>8} {'lag mm':>8} | {'d min':>8} {'d peak':>8} {'d lag':>8}")
     for i, name in enumerate(names):
         lim = limits["filippov"]
-        print(f"{name:<22} {lim['min_grip'][i]:9.4f} {lim['peak_grip'][i]:8.3f} {lim['rms_lag'][i] * 1e3:8.3f} | "
-              f"{agree['min_grip'][i]:8.1e} {agree['peak_grip'][i]:8.1e} {agree['rms_lag'][i]:8.1e}"
-              + ("" if routes_agree[i] else "  <- routes disagree"))
+        print(
+            f"{name:<22} {lim['min_grip'][i]:9.4f} {lim['peak_grip'][i]:8.3f} {lim['rms_lag'][i] * 1e3:8.3f} | "
+            f"{agree['min_grip'][i]:8.1e} {agree['peak_grip'][i]:8.1e} {agree['rms_lag'][i]:8.1e}"
+            + ("" if routes_agree[i] else "  <- routes disagree")
+        )
     reference = limits["filippov"]
 
     study = {}
@@ -460,8 +553,11 @@ def main(argv=None) -> int:
             err = errors(run(columns, integrator, dt), reference)
             ok = passes(err) & routes_agree
             study[integrator, dt] = err
-            print(f"{integrator:<9} dt={dt:<8g} pass {int(ok.sum())}/{int(routes_agree.sum())}  max err: "
-                  f"min grip {err['min_grip'].max():.2e} N, peak {err['peak_grip'].max():.2%}, lag {err['rms_lag'].max():.2%}")
+            print(
+                f"{integrator:<9} dt={dt:<8g} pass {int(ok.sum())}/{int(routes_agree.sum())}  max err: "
+                f"min grip {err['min_grip'].max():.2e} N, peak {err['peak_grip'].max():.2%}, lag "
+                f"{err['rms_lag'].max():.2%}"
+            )
 
     result = {
         "tolerance": TOLERANCE,
@@ -471,9 +567,13 @@ def main(argv=None) -> int:
         "routes_agree": routes_agree.tolist(),
         "route_difference": {k: v.tolist() for k, v in agree.items()},
         "study": [
-            {"integrator": k, "dt": dt, "passes": int((passes(e) & routes_agree).sum()),
-             **{f"max_{m}": float(e[m][routes_agree].max()) for m in TOLERANCE},
-             **{m: e[m].tolist() for m in TOLERANCE}}
+            {
+                "integrator": k,
+                "dt": dt,
+                "passes": int((passes(e) & routes_agree).sum()),
+                **{f"max_{m}": float(e[m][routes_agree].max()) for m in TOLERANCE},
+                **{m: e[m].tolist() for m in TOLERANCE},
+            }
             for (k, dt), e in study.items()
         ],
         "machine": {"jax": jax.__version__, "devices": jax.device_count()},
@@ -484,13 +584,20 @@ def main(argv=None) -> int:
         rk4_dt = max(rk4_ok) if rk4_ok else min(ladder["rk4"])
         speed = {
             "filippov": {"dt": 1e-3, "per_s": trajectories_per_second("filippov", 1e-3, args.batch, 3)},
-            "rk4": {"dt": rk4_dt, "converged": bool(rk4_ok), "per_s": trajectories_per_second("rk4", rk4_dt, args.batch, 1)},
+            "rk4": {
+                "dt": rk4_dt,
+                "converged": bool(rk4_ok),
+                "per_s": trajectories_per_second("rk4", rk4_dt, args.batch, 1),
+            },
         }
         speed["ratio"] = speed["filippov"]["per_s"] / speed["rk4"]["per_s"]
         result["converged_trajectories_per_s"] = {"batch": args.batch, **speed}
-        print(f"converged carry trajectories per second (B = {args.batch}, float64, {jax.device_count()} device): "
-              f"filippov at 1e-3: {speed['filippov']['per_s']:.1f}; rk4 at {rk4_dt:g}"
-              f"{'' if rk4_ok else ' (not converged even there)'}: {speed['rk4']['per_s']:.3f}; ratio {speed['ratio']:.0f}x")
+        print(
+            f"converged carry trajectories per second (B = {args.batch}, float64, {jax.device_count()} device): "
+            f"filippov at 1e-3: {speed['filippov']['per_s']:.1f}; rk4 at {rk4_dt:g}"
+            f"{'' if rk4_ok else ' (not converged even there)'}: {speed['rk4']['per_s']:.3f}; ratio "
+            f"{speed['ratio']:.0f}x"
+        )
 
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
@@ -506,7 +613,11 @@ def plot(result: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    titles = {"min_grip": "min grip: |error| [N]", "peak_grip": "peak grip: relative error", "rms_lag": "RMS lag: relative error"}
+    titles = {
+        "min_grip": "min grip: |error| [N]",
+        "peak_grip": "peak grip: relative error",
+        "rms_lag": "RMS lag: relative error",
+    }
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
     style = {"filippov": dict(color="tab:blue", marker="o"), "rk4": dict(color="tab:red", marker="s")}
     floor = 1e-12
@@ -516,8 +627,14 @@ def plot(result: dict, path: str) -> None:
             dts = np.array([r["dt"] for r in rows])
             errs = np.array([r[metric] for r in rows])[:, np.array(result["routes_agree"])]
             ax.plot(dts, np.maximum(errs.max(1), floor), label=f"{integrator}: worst sample", **style[integrator])
-            ax.plot(dts, np.maximum(np.median(errs, 1), floor), ls="--", alpha=0.6, label=f"{integrator}: median",
-                    color=style[integrator]["color"])
+            ax.plot(
+                dts,
+                np.maximum(np.median(errs, 1), floor),
+                ls="--",
+                alpha=0.6,
+                label=f"{integrator}: median",
+                color=style[integrator]["color"],
+            )
         ax.axhline(result["tolerance"][metric], color="k", ls=":", lw=1, label="tolerance")
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -526,8 +643,10 @@ def plot(result: dict, path: str) -> None:
         ax.grid(True, which="major", alpha=0.3)
     axes[0].legend(fontsize=8)
     n = int(np.sum(result["routes_agree"]))
-    fig.suptitle(f"Hard carry model: error against the dt -> 0 limit over {n} (gain set, mass) samples "
-                 f"(limit: filippov at 1e-5 s = rk4 at 1e-6 s)")
+    fig.suptitle(
+        f"Hard carry model: error against the dt -> 0 limit over {n} (gain set, mass) samples "
+        f"(limit: filippov at 1e-5 s = rk4 at 1e-6 s)"
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -66,10 +66,23 @@ def throughput(Bs, dtypes, devices, repeats, T):
         first = time.perf_counter() - t0
         run_s = timed(compiled, params, repeats=repeats)
         compile_s = max(first - run_s, 0.0)
-        rows.append(dict(impl=IMPL[integrator], integrator=integrator, dtype=dtype, devices=used, B=B,
-                         steps=config.n_steps, compile_s=compile_s, run_s=run_s, steps_per_s=B * config.n_steps / run_s))
-        print(f"  coopjax {integrator} {dtype} {used} device(s) B={B}: {rows[-1]['steps_per_s'] / 1e6:.2f} M steps/s",
-              flush=True)
+        rows.append(
+            dict(
+                impl=IMPL[integrator],
+                integrator=integrator,
+                dtype=dtype,
+                devices=used,
+                B=B,
+                steps=config.n_steps,
+                compile_s=compile_s,
+                run_s=run_s,
+                steps_per_s=B * config.n_steps / run_s,
+            )
+        )
+        print(
+            f"  coopjax {integrator} {dtype} {used} device(s) B={B}: {rows[-1]['steps_per_s'] / 1e6:.2f} M steps/s",
+            flush=True,
+        )
     return rows
 
 
@@ -96,9 +109,15 @@ def gradient_cost(B, repeats, T):
         compiled, compile_s = compile_timed(jax.jit(fn), theta)
         jax.block_until_ready(compiled(theta))
         out[name] = dict(run_s=timed(compiled, theta, repeats=repeats), compile_s=compile_s)
-    return dict(B=B, T=T, switch="smooth", dtype="float64", **out,
-                jacfwd_over_forward=out["jacfwd"]["run_s"] / out["forward"]["run_s"],
-                grad_over_forward=out["grad"]["run_s"] / out["forward"]["run_s"])
+    return dict(
+        B=B,
+        T=T,
+        switch="smooth",
+        dtype="float64",
+        **out,
+        jacfwd_over_forward=out["jacfwd"]["run_s"] / out["forward"]["run_s"],
+        grad_over_forward=out["grad"]["run_s"] / out["forward"]["run_s"],
+    )
 
 
 def memory(B, horizons, repeats):
@@ -120,9 +139,14 @@ def memory(B, horizons, repeats):
             if temp < 4e9:  # run only what fits comfortably in this machine's memory
                 jax.block_until_ready(compiled(0.5))
                 run_s = timed(compiled, 0.5, repeats=repeats)
-            rows.append(dict(checkpoint=str(checkpoint), T=T, B=B, temp_bytes=int(temp), run_s=run_s, compile_s=compile_s))
-            print(f"  grad, checkpoint={checkpoint}, T={T:g} s: {temp / 1e6:.1f} MB, "
-                  f"{'%.2f s' % run_s if run_s else 'not run'}", flush=True)
+            rows.append(
+                dict(checkpoint=str(checkpoint), T=T, B=B, temp_bytes=int(temp), run_s=run_s, compile_s=compile_s)
+            )
+            print(
+                f"  grad, checkpoint={checkpoint}, T={T:g} s: {temp / 1e6:.1f} MB, "
+                f"{'%.2f s' % run_s if run_s else 'not run'}",
+                flush=True,
+            )
     return rows
 
 
@@ -160,8 +184,14 @@ def flops(B, steps_per_s, integrator="rk4"):
     per_step = float(cost.get("flops", 0.0))
     moved = float(cost.get("bytes accessed", 0.0))
     calls = steps_per_s / B
-    return dict(B=B, flops_per_batch_step=per_step, flops_per_sample_step=per_step / B, bytes_per_batch_step=moved,
-                achieved_gflops=per_step * calls / 1e9, achieved_gbytes_per_s=moved * calls / 1e9)
+    return dict(
+        B=B,
+        flops_per_batch_step=per_step,
+        flops_per_sample_step=per_step / B,
+        bytes_per_batch_step=moved,
+        achieved_gflops=per_step * calls / 1e9,
+        achieved_gbytes_per_s=moved * calls / 1e9,
+    )
 
 
 def main():
@@ -180,8 +210,11 @@ def main():
     jax.config.update("jax_num_cpu_devices", args.devices)
     jax.config.update("jax_enable_x64", True)  # float32 runs ask for float32 explicitly
     Bs = [int(b) for b in args.Bs.split(",")]
-    result = dict(jax=jax.__version__, device_count=jax.device_count(),
-                  throughput=throughput(Bs, args.dtypes.split(","), args.devices, args.repeats, args.T))
+    result = dict(
+        jax=jax.__version__,
+        device_count=jax.device_count(),
+        throughput=throughput(Bs, args.dtypes.split(","), args.devices, args.repeats, args.T),
+    )
     if args.extras:
         quick, T = args.quick, args.T
         if not quick:  # gradient and shape studies: several extra compilations each, left to the full run
@@ -191,8 +224,10 @@ def main():
             result["memory"] = memory(8, (T, 10 * T), 3)
             result["compile_vs_horizon"] = compile_vs_horizon((T / 10, T, 10 * T))
         for integrator, key in (("rk4", "flops"), ("filippov", "flops_filippov")):
-            best = max((r for r in result["throughput"] if r["dtype"] == "float32" and r["integrator"] == integrator),
-                       key=lambda r: r["B"])
+            best = max(
+                (r for r in result["throughput"] if r["dtype"] == "float32" and r["integrator"] == integrator),
+                key=lambda r: r["B"],
+            )
             result[key] = flops(best["B"], best["steps_per_s"], integrator)
     print(json.dumps(result))
 

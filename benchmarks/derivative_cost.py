@@ -61,7 +61,10 @@ def main(argv=None):
     queries = {
         "values": (Query(thetas, masses), True),
         "jacobian (forward, n tangents vmapped)": (Query(thetas, masses, "jacobian"), True),
-        f"central differences ({2 * n + 1} runs)": (Query((thetas[:, None] + shifts[None]).reshape(-1, n), masses), True),
+        f"central differences ({2 * n + 1} runs)": (
+            Query((thetas[:, None] + shifts[None]).reshape(-1, n), masses),
+            True,
+        ),
         "gradient (reverse, every step remat.)": (gradient, True),
         "gradient (reverse, nested segments)": (gradient, "nested"),
         "gradient (reverse, segments only)": (gradient, "segment"),
@@ -79,20 +82,40 @@ def main(argv=None):
             start = time.perf_counter()
             evaluator(query)
             times.append(time.perf_counter() - start)
-        rows[label] = {"median_s": statistics.median(times), "compile_s": compile_s,
-                       "temp_MB": memory.temp_size_in_bytes / 1e6 if memory is not None else float("nan")}
+        rows[label] = {
+            "median_s": statistics.median(times),
+            "compile_s": compile_s,
+            "temp_MB": memory.temp_size_in_bytes / 1e6 if memory is not None else float("nan"),
+        }
     unit = rows["values"]["median_s"]
-    print(f"jax {jax.__version__}, {jax.device_count()} devices; {n} parameters, {K} sets x {len(masses)} masses, "
-          f"dt = {problem.dt:g} s, median of {args.repeats}")
-    print(f"{'evaluation':<40} {'median [s]':>11} {'primal runs':>12} {'per parameter':>14} {'compile [s]':>12} "
-          f"{'memory [MB]':>12}")
+    print(
+        f"jax {jax.__version__}, {jax.device_count()} devices; {n} parameters, {K} sets x {len(masses)} masses, "
+        f"dt = {problem.dt:g} s, median of {args.repeats}"
+    )
+    print(
+        f"{'evaluation':<40} {'median [s]':>11} {'primal runs':>12} {'per parameter':>14} {'compile [s]':>12} "
+        f"{'memory [MB]':>12}"
+    )
     for label, row in rows.items():
         row["primal_runs"] = row["median_s"] / unit
-        print(f"{label:<40} {row['median_s']:>11.3f} {row['primal_runs']:>12.1f} {row['primal_runs'] / n:>14.2f} "
-              f"{row['compile_s']:>12.1f} {row['temp_MB']:>12.1f}")
+        print(
+            f"{label:<40} {row['median_s']:>11.3f} {row['primal_runs']:>12.1f} {row['primal_runs'] / n:>14.2f} "
+            f"{row['compile_s']:>12.1f} {row['temp_MB']:>12.1f}"
+        )
     with open(args.out, "w") as f:
-        json.dump({"jax": jax.__version__, "devices": jax.device_count(), "params": n, "lanes": K,
-                   "masses": len(masses), "dt": problem.dt, "rows": rows}, f, indent=1)
+        json.dump(
+            {
+                "jax": jax.__version__,
+                "devices": jax.device_count(),
+                "params": n,
+                "lanes": K,
+                "masses": len(masses),
+                "dt": problem.dt,
+                "rows": rows,
+            },
+            f,
+            indent=1,
+        )
     print(f"wrote {args.out}")
 
 

@@ -18,8 +18,28 @@ import math
 import numpy as np
 
 # Per-robot parameters, then shared ones: the order of the rows of the parameter matrix P.
-PER_ROBOT = ("M_v", "M_r", "K_g", "R_g", "M_c", "R_c", "K_c", "M_f", "R_f", "K_f", "mu_H", "beta_H",
-             "F_lim", "K_ini", "K_GP", "K_GI", "tau", "tau_e", "G_e", "rho")
+PER_ROBOT = (
+    "M_v",
+    "M_r",
+    "K_g",
+    "R_g",
+    "M_c",
+    "R_c",
+    "K_c",
+    "M_f",
+    "R_f",
+    "K_f",
+    "mu_H",
+    "beta_H",
+    "F_lim",
+    "K_ini",
+    "K_GP",
+    "K_GI",
+    "tau",
+    "tau_e",
+    "G_e",
+    "rho",
+)
 SHARED = ("M_b", "A_g", "A_c", "k_F", "k_c", "eps_delta")
 TWO_PI = 2.0 * math.pi
 
@@ -59,7 +79,7 @@ def _sigmoid(x):
 
 def numpy_field(P, y, t, smooth: bool):
     """dy/dt for a batch: y (20, B), P from `parameter_matrix`. Also returns the forces (2, B)."""
-    p = {name: P[2 * i:2 * i + 2] for i, name in enumerate(PER_ROBOT)}
+    p = {name: P[2 * i : 2 * i + 2] for i, name in enumerate(PER_ROBOT)}
     base = 2 * len(PER_ROBOT)
     q = {name: P[base + j] for j, name in enumerate(SHARED)}
     dy = np.empty_like(y)
@@ -88,9 +108,19 @@ def numpy_field(P, y, t, smooth: bool):
         h = r["R_f"] * v_f + r["K_f"] * x_f
         f_ext = -s * F
         e_c = (D - r["M_c"] * f_ext / r["M_r"] + r["M_c"] * g * h / r["M_f"]) / (
-            1.0 + r["M_c"] * r["mu_H"] / r["M_r"] + r["M_c"] * g / r["M_f"])
-        rates = (v_r, (r["mu_H"] * e_c + f_ext) / r["M_r"], v_v, -r["mu_H"] * e_c / r["M_v"], err, v_f,
-                 (e_c - h) / r["M_f"], w * (F - r["F_lim"]) - r["tau"] * Z - (1.0 - w) * r["rho"] * Z, dY)
+            1.0 + r["M_c"] * r["mu_H"] / r["M_r"] + r["M_c"] * g / r["M_f"]
+        )
+        rates = (
+            v_r,
+            (r["mu_H"] * e_c + f_ext) / r["M_r"],
+            v_v,
+            -r["mu_H"] * e_c / r["M_v"],
+            err,
+            v_f,
+            (e_c - h) / r["M_f"],
+            w * (F - r["F_lim"]) - r["tau"] * Z - (1.0 - w) * r["rho"] * Z,
+            dY,
+        )
         for k, rate in enumerate(rates):
             dy[2 * k + i] = rate
     dy[18] = v_o
@@ -287,9 +317,19 @@ def scalar_rhs(p: dict, smooth: bool):
             h = p["R_f"] * v_f + p["K_f"] * x_f
             f_ext = -s * F[i]
             e_c = (D - p["M_c"] * f_ext / p["M_r"] + p["M_c"] * g * h / p["M_f"]) / (
-                1.0 + p["M_c"] * p["mu_H"] / p["M_r"] + p["M_c"] * g / p["M_f"])
-            rates = (v_r, (p["mu_H"] * e_c + f_ext) / p["M_r"], v_v, -p["mu_H"] * e_c / p["M_v"], err, v_f,
-                     (e_c - h) / p["M_f"], w * (F[i] - p["F_lim"]) - p["tau"] * Z - (1.0 - w) * p["rho"] * Z, dY)
+                1.0 + p["M_c"] * p["mu_H"] / p["M_r"] + p["M_c"] * g / p["M_f"]
+            )
+            rates = (
+                v_r,
+                (p["mu_H"] * e_c + f_ext) / p["M_r"],
+                v_v,
+                -p["mu_H"] * e_c / p["M_v"],
+                err,
+                v_f,
+                (e_c - h) / p["M_f"],
+                w * (F[i] - p["F_lim"]) - p["tau"] * Z - (1.0 - w) * p["rho"] * Z,
+                dY,
+            )
             for k, rate in enumerate(rates):
                 dy[2 * k + i] = rate
         dy[18] = y[19]

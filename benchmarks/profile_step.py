@@ -75,14 +75,20 @@ def main(argv=None):
     cost = single.lower(p, model.init_state(p), jnp.asarray(0.5, p.M_b.dtype)).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     flop, moved = cost.get("flops", 0.0) / B, cost.get("bytes accessed", 0.0) / B
-    print(f"  XLA cost analysis of one step: {flop:.0f} FLOP and {moved / 1e3:.1f} kB per sample-step "
-          "(while-loop bodies counted once)")
+    print(
+        f"  XLA cost analysis of one step: {flop:.0f} FLOP and {moved / 1e3:.1f} kB per sample-step "
+        "(while-loop bodies counted once)"
+    )
     slab = Bs.index(256)  # the samples one device runs per dispatch (coopjax.devices.BLOCK)
     for name, ts in per_step.items():
         per_sample = (ts[slab] - ts[0]) / (Bs[slab] - 1)
-        print(f"  {name}: {ts[0] * 1e6:.1f} us per step at B = 1 (the part that does not grow with the batch: "
-              f"{100 * ts[0] / ts[slab]:.0f}% of a B = {Bs[slab]} step), then {per_sample * 1e9:.0f} ns per sample-step up "
-              f"to B = {Bs[slab]}; {ts[-1] / Bs[-1] * 1e9:.0f} ns at B = {Bs[-1]}")
+        print(
+            f"  {name}: {ts[0] * 1e6:.1f} us per step at B = 1 (the part that does not grow with the batch: "
+            f"{100 * ts[0] / ts[slab]:.0f}% of a B = {Bs[slab]} step), then {per_sample * 1e9:.0f} ns per "
+            f"sample-step up "
+            f"to B = {Bs[slab]}; {ts[-1] / Bs[-1] * 1e9:.0f} ns at B = {Bs[-1]}"
+        )
+
 
 if __name__ == "__main__":
     main()

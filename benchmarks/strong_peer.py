@@ -45,7 +45,6 @@ METRICS = ("min_grip", "peak_grip", "slip", "crush", "impact", "rms_lag")
 BLOCK = 64  # samples per block: 20 state rows x 64 x 8 B = 10 kB, in L1 with the block's parameters
 
 
-
 def vectorising_llvm():
     """LLVM options without which the loop over a block stays scalar (process-wide, in this process).
 
@@ -57,8 +56,11 @@ def vectorising_llvm():
     """
     import llvmlite.binding as llvm
 
-    for option in ("-inline-threshold=100000", "-runtime-memory-check-threshold=100000",
-                   "-vectorize-memory-check-threshold=100000"):
+    for option in (
+        "-inline-threshold=100000",
+        "-runtime-memory-check-threshold=100000",
+        "-vectorize-memory-check-threshold=100000",
+    ):
         llvm.set_option("", option)
 
 
@@ -89,8 +91,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     vectorising_llvm()
     jit = functools.partial(numba.njit, error_model="numpy", fastmath=False, boundscheck=False)
     inline = jit  # LLVM inlines them (see `vectorising_llvm`); numba's IR inlining compiled for minutes
-    (iMv, iMr, iKg, iRg, iMc, iRc, iKc, iMf, iRf, iKf, imu, ibeta, iFlim, iKini, iKGP, iKGI, itau, itaue, iGe,
-     irho) = (2 * j for j in range(len(PER_ROBOT)))
+    (iMv, iMr, iKg, iRg, iMc, iRc, iKc, iMf, iRf, iKf, imu, ibeta, iFlim, iKini, iKGP, iKGI, itau, itaue, iGe, irho) = (
+        2 * j for j in range(len(PER_ROBOT))
+    )
 
     @inline
     def small(x):
@@ -123,8 +126,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         rv, ra, rx = bump(t, cos, sin, TWO)
         sA = s * P[base + 1, b]
         A_c = P[base + 2, b]
-        return (sA * gv + A_c * cv - TWO * sA * rv, sA * ga + A_c * ca - TWO * sA * ra,
-                sA * gx + A_c * cx - TWO * sA * rx)
+        return (
+            sA * gv + A_c * cv - TWO * sA * rv,
+            sA * ga + A_c * ca - TWO * sA * ra,
+            sA * gx + A_c * cx - TWO * sA * rx,
+        )
 
     @inline
     def rates(P, i, b, s, x_r, v_r, v_v, q_c, x_f, v_f, Z, Y_e, F, on, F_c, cmd):
@@ -167,21 +173,105 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def axpy(y, c, k):
         """y + c k for 20-tuples, written out: LLVM vectorises only innermost loops, so the loop over
         the block must contain no loop of its own."""
-        return (y[0] + c * k[0], y[1] + c * k[1], y[2] + c * k[2], y[3] + c * k[3], y[4] + c * k[4], y[5] + c * k[5], y[6] + c * k[6], y[7] + c * k[7], y[8] + c * k[8], y[9] + c * k[9], y[10] + c * k[10], y[11] + c * k[11], y[12] + c * k[12], y[13] + c * k[13], y[14] + c * k[14], y[15] + c * k[15], y[16] + c * k[16], y[17] + c * k[17], y[18] + c * k[18], y[19] + c * k[19])
+        return (
+            y[0] + c * k[0],
+            y[1] + c * k[1],
+            y[2] + c * k[2],
+            y[3] + c * k[3],
+            y[4] + c * k[4],
+            y[5] + c * k[5],
+            y[6] + c * k[6],
+            y[7] + c * k[7],
+            y[8] + c * k[8],
+            y[9] + c * k[9],
+            y[10] + c * k[10],
+            y[11] + c * k[11],
+            y[12] + c * k[12],
+            y[13] + c * k[13],
+            y[14] + c * k[14],
+            y[15] + c * k[15],
+            y[16] + c * k[16],
+            y[17] + c * k[17],
+            y[18] + c * k[18],
+            y[19] + c * k[19],
+        )
 
     @inline
     def weighted(k1, k2, k3, k4):
         """W1 k1 + W2 k2 + W3 k3 + W4 k4 for 20-tuples (RK4's weights, to be divided by DEN)."""
-        return (W1 * k1[0] + W2 * k2[0] + W3 * k3[0] + W4 * k4[0], W1 * k1[1] + W2 * k2[1] + W3 * k3[1] + W4 * k4[1], W1 * k1[2] + W2 * k2[2] + W3 * k3[2] + W4 * k4[2], W1 * k1[3] + W2 * k2[3] + W3 * k3[3] + W4 * k4[3], W1 * k1[4] + W2 * k2[4] + W3 * k3[4] + W4 * k4[4], W1 * k1[5] + W2 * k2[5] + W3 * k3[5] + W4 * k4[5], W1 * k1[6] + W2 * k2[6] + W3 * k3[6] + W4 * k4[6], W1 * k1[7] + W2 * k2[7] + W3 * k3[7] + W4 * k4[7], W1 * k1[8] + W2 * k2[8] + W3 * k3[8] + W4 * k4[8], W1 * k1[9] + W2 * k2[9] + W3 * k3[9] + W4 * k4[9], W1 * k1[10] + W2 * k2[10] + W3 * k3[10] + W4 * k4[10], W1 * k1[11] + W2 * k2[11] + W3 * k3[11] + W4 * k4[11], W1 * k1[12] + W2 * k2[12] + W3 * k3[12] + W4 * k4[12], W1 * k1[13] + W2 * k2[13] + W3 * k3[13] + W4 * k4[13], W1 * k1[14] + W2 * k2[14] + W3 * k3[14] + W4 * k4[14], W1 * k1[15] + W2 * k2[15] + W3 * k3[15] + W4 * k4[15], W1 * k1[16] + W2 * k2[16] + W3 * k3[16] + W4 * k4[16], W1 * k1[17] + W2 * k2[17] + W3 * k3[17] + W4 * k4[17], W1 * k1[18] + W2 * k2[18] + W3 * k3[18] + W4 * k4[18], W1 * k1[19] + W2 * k2[19] + W3 * k3[19] + W4 * k4[19])
+        return (
+            W1 * k1[0] + W2 * k2[0] + W3 * k3[0] + W4 * k4[0],
+            W1 * k1[1] + W2 * k2[1] + W3 * k3[1] + W4 * k4[1],
+            W1 * k1[2] + W2 * k2[2] + W3 * k3[2] + W4 * k4[2],
+            W1 * k1[3] + W2 * k2[3] + W3 * k3[3] + W4 * k4[3],
+            W1 * k1[4] + W2 * k2[4] + W3 * k3[4] + W4 * k4[4],
+            W1 * k1[5] + W2 * k2[5] + W3 * k3[5] + W4 * k4[5],
+            W1 * k1[6] + W2 * k2[6] + W3 * k3[6] + W4 * k4[6],
+            W1 * k1[7] + W2 * k2[7] + W3 * k3[7] + W4 * k4[7],
+            W1 * k1[8] + W2 * k2[8] + W3 * k3[8] + W4 * k4[8],
+            W1 * k1[9] + W2 * k2[9] + W3 * k3[9] + W4 * k4[9],
+            W1 * k1[10] + W2 * k2[10] + W3 * k3[10] + W4 * k4[10],
+            W1 * k1[11] + W2 * k2[11] + W3 * k3[11] + W4 * k4[11],
+            W1 * k1[12] + W2 * k2[12] + W3 * k3[12] + W4 * k4[12],
+            W1 * k1[13] + W2 * k2[13] + W3 * k3[13] + W4 * k4[13],
+            W1 * k1[14] + W2 * k2[14] + W3 * k3[14] + W4 * k4[14],
+            W1 * k1[15] + W2 * k2[15] + W3 * k3[15] + W4 * k4[15],
+            W1 * k1[16] + W2 * k2[16] + W3 * k3[16] + W4 * k4[16],
+            W1 * k1[17] + W2 * k2[17] + W3 * k3[17] + W4 * k4[17],
+            W1 * k1[18] + W2 * k2[18] + W3 * k3[18] + W4 * k4[18],
+            W1 * k1[19] + W2 * k2[19] + W3 * k3[19] + W4 * k4[19],
+        )
 
     @inline
     def weighted_dense(k1, k2, k3, k4, b1, b23, b4):
         """RK4's continuous extension's weights for 20-tuples, written out (see axpy)."""
-        return (b1 * k1[0] + b23 * (k2[0] + k3[0]) + b4 * k4[0], b1 * k1[1] + b23 * (k2[1] + k3[1]) + b4 * k4[1], b1 * k1[2] + b23 * (k2[2] + k3[2]) + b4 * k4[2], b1 * k1[3] + b23 * (k2[3] + k3[3]) + b4 * k4[3], b1 * k1[4] + b23 * (k2[4] + k3[4]) + b4 * k4[4], b1 * k1[5] + b23 * (k2[5] + k3[5]) + b4 * k4[5], b1 * k1[6] + b23 * (k2[6] + k3[6]) + b4 * k4[6], b1 * k1[7] + b23 * (k2[7] + k3[7]) + b4 * k4[7], b1 * k1[8] + b23 * (k2[8] + k3[8]) + b4 * k4[8], b1 * k1[9] + b23 * (k2[9] + k3[9]) + b4 * k4[9], b1 * k1[10] + b23 * (k2[10] + k3[10]) + b4 * k4[10], b1 * k1[11] + b23 * (k2[11] + k3[11]) + b4 * k4[11], b1 * k1[12] + b23 * (k2[12] + k3[12]) + b4 * k4[12], b1 * k1[13] + b23 * (k2[13] + k3[13]) + b4 * k4[13], b1 * k1[14] + b23 * (k2[14] + k3[14]) + b4 * k4[14], b1 * k1[15] + b23 * (k2[15] + k3[15]) + b4 * k4[15], b1 * k1[16] + b23 * (k2[16] + k3[16]) + b4 * k4[16], b1 * k1[17] + b23 * (k2[17] + k3[17]) + b4 * k4[17], b1 * k1[18] + b23 * (k2[18] + k3[18]) + b4 * k4[18], b1 * k1[19] + b23 * (k2[19] + k3[19]) + b4 * k4[19])
+        return (
+            b1 * k1[0] + b23 * (k2[0] + k3[0]) + b4 * k4[0],
+            b1 * k1[1] + b23 * (k2[1] + k3[1]) + b4 * k4[1],
+            b1 * k1[2] + b23 * (k2[2] + k3[2]) + b4 * k4[2],
+            b1 * k1[3] + b23 * (k2[3] + k3[3]) + b4 * k4[3],
+            b1 * k1[4] + b23 * (k2[4] + k3[4]) + b4 * k4[4],
+            b1 * k1[5] + b23 * (k2[5] + k3[5]) + b4 * k4[5],
+            b1 * k1[6] + b23 * (k2[6] + k3[6]) + b4 * k4[6],
+            b1 * k1[7] + b23 * (k2[7] + k3[7]) + b4 * k4[7],
+            b1 * k1[8] + b23 * (k2[8] + k3[8]) + b4 * k4[8],
+            b1 * k1[9] + b23 * (k2[9] + k3[9]) + b4 * k4[9],
+            b1 * k1[10] + b23 * (k2[10] + k3[10]) + b4 * k4[10],
+            b1 * k1[11] + b23 * (k2[11] + k3[11]) + b4 * k4[11],
+            b1 * k1[12] + b23 * (k2[12] + k3[12]) + b4 * k4[12],
+            b1 * k1[13] + b23 * (k2[13] + k3[13]) + b4 * k4[13],
+            b1 * k1[14] + b23 * (k2[14] + k3[14]) + b4 * k4[14],
+            b1 * k1[15] + b23 * (k2[15] + k3[15]) + b4 * k4[15],
+            b1 * k1[16] + b23 * (k2[16] + k3[16]) + b4 * k4[16],
+            b1 * k1[17] + b23 * (k2[17] + k3[17]) + b4 * k4[17],
+            b1 * k1[18] + b23 * (k2[18] + k3[18]) + b4 * k4[18],
+            b1 * k1[19] + b23 * (k2[19] + k3[19]) + b4 * k4[19],
+        )
 
     @inline
     def load(y, b):
-        return (y[0, b], y[1, b], y[2, b], y[3, b], y[4, b], y[5, b], y[6, b], y[7, b], y[8, b], y[9, b], y[10, b], y[11, b], y[12, b], y[13, b], y[14, b], y[15, b], y[16, b], y[17, b], y[18, b], y[19, b])
+        return (
+            y[0, b],
+            y[1, b],
+            y[2, b],
+            y[3, b],
+            y[4, b],
+            y[5, b],
+            y[6, b],
+            y[7, b],
+            y[8, b],
+            y[9, b],
+            y[10, b],
+            y[11, b],
+            y[12, b],
+            y[13, b],
+            y[14, b],
+            y[15, b],
+            y[16, b],
+            y[17, b],
+            y[18, b],
+            y[19, b],
+        )
 
     @inline
     def store(y, b, v):
@@ -237,9 +327,17 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
 
     @inline
     def blend(r0, r1, lam):
-        return (r0[0], r0[1] + lam * (r1[1] - r0[1]), r0[2], r0[3] + lam * (r1[3] - r0[3]),
-                r0[4] + lam * (r1[4] - r0[4]), r0[5], r0[6] + lam * (r1[6] - r0[6]), r0[7] + lam * (r1[7] - r0[7]),
-                r0[8] + lam * (r1[8] - r0[8]))
+        return (
+            r0[0],
+            r0[1] + lam * (r1[1] - r0[1]),
+            r0[2],
+            r0[3] + lam * (r1[3] - r0[3]),
+            r0[4] + lam * (r1[4] - r0[4]),
+            r0[5],
+            r0[6] + lam * (r1[6] - r0[6]),
+            r0[7] + lam * (r1[7] - r0[7]),
+            r0[8] + lam * (r1[8] - r0[8]),
+        )
 
     @inline
     def fractions(sd0, sd1, sigma_n, h):
@@ -327,8 +425,28 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
 
     @inline
     def assemble(rL, rR, v_o, a_o):
-        return (rL[0], rR[0], rL[1], rR[1], rL[2], rR[2], rL[3], rR[3], rL[4], rR[4], rL[5], rR[5], rL[6], rR[6],
-                rL[7], rR[7], rL[8], rR[8], v_o, a_o)
+        return (
+            rL[0],
+            rR[0],
+            rL[1],
+            rR[1],
+            rL[2],
+            rR[2],
+            rL[3],
+            rR[3],
+            rL[4],
+            rR[4],
+            rL[5],
+            rR[5],
+            rL[6],
+            rR[6],
+            rL[7],
+            rR[7],
+            rL[8],
+            rR[8],
+            v_o,
+            a_o,
+        )
 
     @inline
     def sigma_n_of(P, b, y, on_L, on_R):
@@ -337,7 +455,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return ((kL if (on_L or dL > Z0) else Z0) - P[iFlim, b], (kR if (on_R or dR > Z0) else Z0) - P[iFlim + 1, b])
 
     @inline
-    def stage(P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR, frL, frR):
+    def stage(
+        P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR, frL, frR
+    ):
         """One of the stages after the first: the rates at y + c k, t + c, with the substep's plan,
         and each robot's unclipped lambda* there."""
         ys = axpy(y, c, k)
@@ -345,7 +465,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         gL, gR, jL, jR, _, _, a_s, _, _, _, _ = evaluate(P, b, ys, ts, cs, ss, on_L, on_R, impL, impR)
         lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL, frL)
         lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR, frR)
-        return assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s), raw_of(gL[2], gL[3]), raw_of(gR[2], gR[3])
+        return (
+            assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s),
+            raw_of(gL[2], gL[3]),
+            raw_of(gR[2], gR[3]),
+        )
 
     @inline
     def substep(P, b, y, t, cos, sin, remaining, on_L, on_R, keptL, keptR, dt, last):
@@ -371,20 +495,88 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         tbR, taR = fractions(fR[2], fR[3], sn_R, h)
         # A robot sliding at the start slides through the piece, lambda* unclipped (filippov.substep).
         rawL, rawR = raw_of(fL[2], fL[3]), raw_of(fR[2], fR[3])
-        frL = (inL and holdL < 0 and rawL > Z0 and rawL < ONE and not last
-               and ((tbL < ONE) if sn_L < Z0 else (taL < ONE)))
-        frR = (inR and holdR < 0 and rawR > Z0 and rawR < ONE and not last
-               and ((tbR < ONE) if sn_R < Z0 else (taR < ONE)))
+        frL = (
+            inL and holdL < 0 and rawL > Z0 and rawL < ONE and not last and ((tbL < ONE) if sn_L < Z0 else (taL < ONE))
+        )
+        frR = (
+            inR and holdR < 0 and rawR > Z0 and rawR < ONE and not last and ((tbR < ONE) if sn_R < Z0 else (taR < ONE))
+        )
         # Stage 0 (at the start), then the three others.
         lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL)
         lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR, frR)
         k = assemble(blend(fL[0], fL[1], lamL), blend(fR[0], fR[1], lamR), y[19], a_o)
-        k2, _, _ = stage(P, b, y, k, A2 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
-                         holdR, frL, frR)
-        k3, _, _ = stage(P, b, y, k2, A3 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
-                         holdR, frL, frR)
-        k4, endL, endR = stage(P, b, y, k3, A4 * h, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL,
-                               holdR, frL, frR)
+        k2, _, _ = stage(
+            P,
+            b,
+            y,
+            k,
+            A2 * h,
+            t,
+            cos,
+            sin,
+            on_L,
+            on_R,
+            impL,
+            impR,
+            sn_L,
+            sn_R,
+            tbL,
+            taL,
+            tbR,
+            taR,
+            holdL,
+            holdR,
+            frL,
+            frR,
+        )
+        k3, _, _ = stage(
+            P,
+            b,
+            y,
+            k2,
+            A3 * h,
+            t,
+            cos,
+            sin,
+            on_L,
+            on_R,
+            impL,
+            impR,
+            sn_L,
+            sn_R,
+            tbL,
+            taL,
+            tbR,
+            taR,
+            holdL,
+            holdR,
+            frL,
+            frR,
+        )
+        k4, endL, endR = stage(
+            P,
+            b,
+            y,
+            k3,
+            A4 * h,
+            t,
+            cos,
+            sin,
+            on_L,
+            on_R,
+            impL,
+            impR,
+            sn_L,
+            sn_R,
+            tbL,
+            taL,
+            tbR,
+            taR,
+            holdL,
+            holdR,
+            frL,
+            frR,
+        )
         total = weighted(k, k2, k3, k4)
         # The switch held through the whole piece, below (off) or above (on) the surface.
         offL = inL and sn_L < Z0 and (holdL == 0 or (holdL < 0 and tbL >= ONE))
@@ -395,7 +587,23 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         heldR = (offR, onR_, sn_R, fR[2], fR[3], inR, fR[2] + lamR * (fR[3] - fR[2]))
         slides = (frL, rawL, endL, frR, rawR, endR)
         # The piece ends on the surface where its plan ended it at a switch (not a hold kept from an exit).
-        return total, h, impL, impR, holdL >= 0 and keptL < 0, holdR >= 0 and keptR < 0, FL, FR, heldL, heldR, k, k2, k3, k4, slides
+        return (
+            total,
+            h,
+            impL,
+            impR,
+            holdL >= 0 and keptL < 0,
+            holdR >= 0 and keptR < 0,
+            FL,
+            FR,
+            heldL,
+            heldR,
+            k,
+            k2,
+            k3,
+            k4,
+            slides,
+        )
 
     @inline
     def forces_at(P, b, y, on_L, on_R, off_L, off_R):
@@ -448,10 +656,12 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def pieces_of(P, b, F_max, s0L, s0R, e0L, e0R, frac):
         """One piece's trapezoidal integrals of slip (lower) and crush (upper) excess squared."""
         FlL, FlR = P[iFlim, b], P[iFlim + 1, b]
-        slip = HALF * frac * (sq(max(FlL - s0L, Z0)) + sq(max(FlL - e0L, Z0))) \
-            + HALF * frac * (sq(max(FlR - s0R, Z0)) + sq(max(FlR - e0R, Z0)))
-        crush = HALF * frac * (sq(max(s0L - F_max, Z0)) + sq(max(e0L - F_max, Z0))) \
-            + HALF * frac * (sq(max(s0R - F_max, Z0)) + sq(max(e0R - F_max, Z0)))
+        slip = HALF * frac * (sq(max(FlL - s0L, Z0)) + sq(max(FlL - e0L, Z0))) + HALF * frac * (
+            sq(max(FlR - s0R, Z0)) + sq(max(FlR - e0R, Z0))
+        )
+        crush = HALF * frac * (sq(max(s0L - F_max, Z0)) + sq(max(e0L - F_max, Z0))) + HALF * frac * (
+            sq(max(s0R - F_max, Z0)) + sq(max(e0R - F_max, Z0))
+        )
         return slip, crush
 
     filippov = step == "filippov"
@@ -462,8 +672,35 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     @inline
     def sample_loop(P, S, t, cos_t, sin_t, in_grip, lag_weight, dt):
         """The sample at t_k: forces and the lag (objectives), and the step's setup."""
-        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
+        (
+            y,
+            yn,
+            rem,
+            off,
+            onL,
+            onR,
+            FeL,
+            FeR,
+            F0L,
+            F0R,
+            leastL,
+            leastR,
+            peakL,
+            peakR,
+            slip,
+            crush,
+            impact,
+            lag,
+            diverged,
+            t_div,
+            hs,
+            sLa,
+            sRa,
+            sfLa,
+            sfRa,
+            kpL,
+            kpR,
+        ) = S
         for b in range(P.shape[1]):
             yb = load(y, b)
             FL, FR = forces_at(P, b, yb, False, False, False, False)
@@ -487,22 +724,52 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     @inline
     def piece_loop(P, S, t, cos_t, sin_t, dt, last, step_in_grip, after, F_max):
         """One piece of the sliding-mode step for every sample of the block, and its path's metrics."""
-        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
+        (
+            y,
+            yn,
+            rem,
+            off,
+            onL,
+            onR,
+            FeL,
+            FeR,
+            F0L,
+            F0R,
+            leastL,
+            leastR,
+            peakL,
+            peakR,
+            slip,
+            crush,
+            impact,
+            lag,
+            diverged,
+            t_div,
+            hs,
+            sLa,
+            sRa,
+            sfLa,
+            sfRa,
+            kpL,
+            kpR,
+        ) = S
         for b in range(P.shape[1]):
             yb = load(yn, b)
             tb, cb, sb = advance(t, cos_t, sin_t, off[b])
             total, h, iL, iR, sfL, sfR, sL, sR, heldL, heldR, k1, k2, k3, k4, slides = substep(
-                P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], kpL[b], kpR[b], dt, last)
+                P, b, yb, tb, cb, sb, rem[b], onL[b], onR[b], kpL[b], kpR[b], dt, last
+            )
             new = axpy(yb, h / DEN, total)
             # A crossing the piece held the switch through: the piece ends there, on RK4's continuous
             # extension (filippov.step).
             _, _, kL = geometry(P, 0, b, ONE, new[0], new[2], new[18], new[19])
             _, _, kR = geometry(P, 1, b, -ONE, new[1], new[3], new[18], new[19])
-            fL, tL, hL = found(heldL[0], heldL[1], heldL[2], heldL[3], heldL[4], heldL[5], heldL[6], kL, P[iFlim, b], h,
-                               not last)
-            fR, tR, hR = found(heldR[0], heldR[1], heldR[2], heldR[3], heldR[4], heldR[5], heldR[6], kR, P[iFlim + 1, b], h,
-                               not last)
+            fL, tL, hL = found(
+                heldL[0], heldL[1], heldL[2], heldL[3], heldL[4], heldL[5], heldL[6], kL, P[iFlim, b], h, not last
+            )
+            fR, tR, hR = found(
+                heldR[0], heldR[1], heldR[2], heldR[3], heldR[4], heldR[5], heldR[6], kR, P[iFlim + 1, b], h, not last
+            )
             # Or a sliding exit (filippov.sliding_exit), merged per robot as filippov.step does.
             xL, uL, gL = sliding_exit(slides[0], slides[1], slides[2], h)
             xR, uR, gR = sliding_exit(slides[3], slides[4], slides[5], h)
@@ -539,7 +806,17 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         # peak at its ends, the means' trapezoids, the least force at a located event (not after the
         # last piece).
         for b in range(P.shape[1]):
-            h, sL, sR, eL, eR, iL, iR, sfL, sfR = hs[b], sLa[b], sRa[b], FeL[b], FeR[b], onL[b], onR[b], sfLa[b], sfRa[b]
+            h, sL, sR, eL, eR, iL, iR, sfL, sfR = (
+                hs[b],
+                sLa[b],
+                sRa[b],
+                FeL[b],
+                FeR[b],
+                onL[b],
+                onR[b],
+                sfLa[b],
+                sfRa[b],
+            )
             keep = not diverged[b]
             s_, c_ = pieces_of(P, b, F_max, sL, sR, eL, eR, h / dt)
             peakL[b] = max(peakL[b], max(sL, eL)) if keep else peakL[b]
@@ -563,8 +840,35 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     @inline
     def rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, after, F_max):
         """A plain RK4 step for every sample of the block, and its path's metrics."""
-        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
+        (
+            y,
+            yn,
+            rem,
+            off,
+            onL,
+            onR,
+            FeL,
+            FeR,
+            F0L,
+            F0R,
+            leastL,
+            leastR,
+            peakL,
+            peakR,
+            slip,
+            crush,
+            impact,
+            lag,
+            diverged,
+            t_div,
+            hs,
+            sLa,
+            sRa,
+            sfLa,
+            sfRa,
+            kpL,
+            kpR,
+        ) = S
         c2, c3, c4 = A2 * dt, A3 * dt, A4 * dt
         t2, cos2, sin2 = advance(t, cos_t, sin_t, c2)
         t3, cos3, sin3 = advance(t, cos_t, sin_t, c3)
@@ -593,8 +897,35 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def divergence_loop(P, S, t, dt, F_bound):
         """integration/loop.py's rule: a non-finite state or an absurd force at the step's start
         freezes the sample at its last good state."""
-        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
+        (
+            y,
+            yn,
+            rem,
+            off,
+            onL,
+            onR,
+            FeL,
+            FeR,
+            F0L,
+            F0R,
+            leastL,
+            leastR,
+            peakL,
+            peakR,
+            slip,
+            crush,
+            impact,
+            lag,
+            diverged,
+            t_div,
+            hs,
+            sLa,
+            sRa,
+            sfLa,
+            sfRa,
+            kpL,
+            kpR,
+        ) = S
         for b in range(P.shape[1]):
             bad = abs(F0L[b]) > F_bound or abs(F0R[b]) > F_bound
             for r in range(20):
@@ -609,13 +940,35 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
     def run_block(P, dt, n, g0, g1, l0, l1, F_bound, F_max, out):
         """One block of the batch over the whole run; writes its metrics (N_METRICS, m) into out."""
         m = P.shape[1]
-        S = (np.zeros((20, m), P.dtype), np.zeros((20, m), P.dtype), np.empty(m, P.dtype), np.empty(m, P.dtype),
-             np.zeros(m, np.bool_), np.zeros(m, np.bool_), np.empty(m, P.dtype), np.empty(m, P.dtype),
-             np.empty(m, P.dtype), np.empty(m, P.dtype), np.full(m, INF, P.dtype), np.full(m, INF, P.dtype),
-             np.full(m, -INF, P.dtype), np.full(m, -INF, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype),
-             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.full(m, INF, P.dtype),
-             np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, P.dtype), np.zeros(m, np.bool_), np.zeros(m, np.bool_),
-             np.full(m, -1, np.int64), np.full(m, -1, np.int64))
+        S = (
+            np.zeros((20, m), P.dtype),
+            np.zeros((20, m), P.dtype),
+            np.empty(m, P.dtype),
+            np.empty(m, P.dtype),
+            np.zeros(m, np.bool_),
+            np.zeros(m, np.bool_),
+            np.empty(m, P.dtype),
+            np.empty(m, P.dtype),
+            np.empty(m, P.dtype),
+            np.empty(m, P.dtype),
+            np.full(m, INF, P.dtype),
+            np.full(m, INF, P.dtype),
+            np.full(m, -INF, P.dtype),
+            np.full(m, -INF, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, np.bool_),
+            np.full(m, INF, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, P.dtype),
+            np.zeros(m, np.bool_),
+            np.zeros(m, np.bool_),
+            np.full(m, -1, np.int64),
+            np.full(m, -1, np.int64),
+        )
         for k in range(n + 1):
             t = T(k) * dt
             cos_t, sin_t = T(math.cos(TWO_PI * t)), T(math.sin(TWO_PI * t))
@@ -633,8 +986,35 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             else:
                 rk4_loop(P, S, t, cos_t, sin_t, dt, step_in_grip, k >= g1, F_max)
             divergence_loop(P, S, t, dt, F_bound)
-        (y, yn, rem, off, onL, onR, FeL, FeR, F0L, F0R, leastL, leastR, peakL, peakR, slip, crush, impact, lag, diverged, t_div,
-         hs, sLa, sRa, sfLa, sfRa, kpL, kpR) = S
+        (
+            y,
+            yn,
+            rem,
+            off,
+            onL,
+            onR,
+            FeL,
+            FeR,
+            F0L,
+            F0R,
+            leastL,
+            leastR,
+            peakL,
+            peakR,
+            slip,
+            crush,
+            impact,
+            lag,
+            diverged,
+            t_div,
+            hs,
+            sLa,
+            sRa,
+            sfLa,
+            sfRa,
+            kpL,
+            kpR,
+        ) = S
         grip_span = T(max(0, g1 - g0)) * dt
         after_span = T(max(0, n - g1)) * dt
         n_lag = max(0, l1 - l0)
@@ -740,11 +1120,19 @@ def _compare(name, fn):
     setattr(_Counted, f"__{name}__", op)
 
 
-for _name, _fn in (("add", lambda a, b: a + b), ("sub", lambda a, b: a - b), ("mul", lambda a, b: a * b),
-                   ("truediv", lambda a, b: a / b if b else math.copysign(math.inf, a) * math.copysign(1.0, b) if a else math.nan)):
+for _name, _fn in (
+    ("add", lambda a, b: a + b),
+    ("sub", lambda a, b: a - b),
+    ("mul", lambda a, b: a * b),
+    ("truediv", lambda a, b: a / b if b else math.copysign(math.inf, a) * math.copysign(1.0, b) if a else math.nan),
+):
     _binary(_name, _fn)
-for _name, _fn in (("lt", lambda a, b: a < b), ("le", lambda a, b: a <= b), ("gt", lambda a, b: a > b),
-                   ("ge", lambda a, b: a >= b)):
+for _name, _fn in (
+    ("lt", lambda a, b: a < b),
+    ("le", lambda a, b: a <= b),
+    ("gt", lambda a, b: a > b),
+    ("ge", lambda a, b: a >= b),
+):
     _compare(_name, _fn)
 
 
@@ -799,8 +1187,9 @@ if __name__ == "__main__":  # python -m benchmarks.strong_peer: the FLOP counts 
 
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.strong_peer",
-                                     description="FLOP per sample-step of the strong peer's source, as JSON")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.strong_peer", description="FLOP per sample-step of the strong peer's source, as JSON"
+    )
     parser.add_argument("--T", type=float, default=4.0, help="horizon of the counted carry run, s (default 4)")
     args = parser.parse_args()
     if os.environ.get("NUMBA_DISABLE_JIT") != "1":

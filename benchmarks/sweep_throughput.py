@@ -17,20 +17,22 @@ import sys
 CHILD = r"""
 import json, statistics, sys, time
 import jax
-devices, B, repeats, x64, integrator = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1", sys.argv[5]
+devices, B, repeats = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+x64, integrator = sys.argv[4] == "1", sys.argv[5]
 jax.config.update("jax_num_cpu_devices", devices)
 jax.config.update("jax_enable_x64", x64)
 import numpy as np
 from coopjax import sweeps
-spec = sweeps.make_spec("carry", n=B, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.7"}, integrator=integrator)
+vary = {"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.7"}
+spec = sweeps.make_spec("carry", n=B, vary=vary, integrator=integrator)
 values = sweeps.sample_values(spec)
 t0 = time.perf_counter(); sweeps.evaluate(spec, values); first = time.perf_counter() - t0
 times = []
 for _ in range(repeats):
     t0 = time.perf_counter(); sweeps.evaluate(spec, values); times.append(time.perf_counter() - t0)
 run = statistics.median(times)
-print(json.dumps(dict(devices=devices, x64=x64, integrator=integrator, first_call_s=first, compile_s=first - run, run_s=run,
-                      steps_per_s=B * spec.config.n_steps / run, jax=jax.__version__)))
+print(json.dumps(dict(devices=devices, x64=x64, integrator=integrator, first_call_s=first, compile_s=first - run,
+                      run_s=run, steps_per_s=B * spec.config.n_steps / run, jax=jax.__version__)))
 """
 
 
@@ -43,12 +45,19 @@ def main():
     for integrator in ("rk4", "filippov"):
         for x64 in (0, 1):
             for devices in (1, os.cpu_count() or 1):
-                out = subprocess.run([sys.executable, "-c", CHILD, str(devices), str(args.B), str(args.repeats), str(x64),
-                                      integrator], capture_output=True, text=True, check=True)
+                out = subprocess.run(
+                    [sys.executable, "-c", CHILD, str(devices), str(args.B), str(args.repeats), str(x64), integrator],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
                 r = json.loads(out.stdout.strip().splitlines()[-1])
                 results.append(r)
-                print(f"{integrator} {'float64' if x64 else 'float32'}, {devices} device(s): compile ~{r['compile_s']:.2f} s, "
-                      f"run median {r['run_s']:.3f} s, {r['steps_per_s'] / 1e6:.2f} M parameter-set steps/s")
+                print(
+                    f"{integrator} {'float64' if x64 else 'float32'}, {devices} device(s): compile "
+                    f"~{r['compile_s']:.2f} s, "
+                    f"run median {r['run_s']:.3f} s, {r['steps_per_s'] / 1e6:.2f} M parameter-set steps/s"
+                )
             one, many = results[-2], results[-1]
             print(f"  ratio {many['devices']} devices / 1 device: {many['steps_per_s'] / one['steps_per_s']:.2f}")
     print(f"jax {results[0]['jax']}, cores {os.cpu_count()}, B = {args.B}, 4000 steps")

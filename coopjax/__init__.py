@@ -8,12 +8,42 @@ import importlib
 
 __version__ = "0.1.0"
 
-_API = frozenset({
-    "Aux", "Config", "INTEGRATORS", "InputError", "Integrator", "METRICS", "Metric", "Metrics", "Observation", "Options",
-    "PARAMETERS", "Params", "SCENARIOS", "STATE_NAMES", "Scenario", "Solution", "Trajectory", "Weights", "integrate",
-    "linearize", "loss", "make_params", "momentum", "register_integrator", "register_metric", "register_scenario", "rk4",
-    "simulate", "step", "sweep", "use_all_cores", "vector_field",
-})
+_API = frozenset(
+    {
+        "Aux",
+        "Config",
+        "INTEGRATORS",
+        "InputError",
+        "Integrator",
+        "METRICS",
+        "Metric",
+        "Metrics",
+        "Observation",
+        "Options",
+        "PARAMETERS",
+        "Params",
+        "SCENARIOS",
+        "STATE_NAMES",
+        "Scenario",
+        "Solution",
+        "Trajectory",
+        "Weights",
+        "integrate",
+        "linearize",
+        "loss",
+        "make_params",
+        "momentum",
+        "register_integrator",
+        "register_metric",
+        "register_scenario",
+        "rk4",
+        "simulate",
+        "step",
+        "sweep",
+        "use_all_cores",
+        "vector_field",
+    }
+)
 
 
 def __getattr__(name):

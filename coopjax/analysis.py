@@ -79,8 +79,10 @@ class OperatingPoint:
 
 def _single(params: Params) -> Params:
     if params.batch_shape:
-        raise InputError(f"linearize takes one parameter set; this one has batch shape {params.batch_shape} "
-                         "(make one with scalar values, e.g. make_params(M_b=2.0), and loop over the batch)")
+        raise InputError(
+            f"linearize takes one parameter set; this one has batch shape {params.batch_shape} "
+            "(make one with scalar values, e.g. make_params(M_b=2.0), and loop over the batch)"
+        )
     return params
 
 
@@ -127,7 +129,9 @@ def operating_point(params: Params, point="rest", *, alpha=None, scenario="paper
     F_lim = np.broadcast_to(np.asarray(p.F_lim), (2,))
     contact = ((delta > 0) & (F > 0)).astype(float)
     w = (contact * F >= F_lim * (1 - ON_LIMIT)).astype(float)
-    robots = ", ".join(f"{r}: F = {F[i] * contact[i]:.4g} N, switch {'on' if w[i] else 'off'}" for i, r in enumerate(ROBOTS))
+    robots = ", ".join(
+        f"{r}: F = {F[i] * contact[i]:.4g} N, switch {'on' if w[i] else 'off'}" for i, r in enumerate(ROBOTS)
+    )
     return OperatingPoint(y, t, w, contact, p, f"{scenario} run at t = {t:g} s ({robots})")
 
 
@@ -159,7 +163,9 @@ def _field(p, y_op, t, w, contact, y, u, u_dot, scenario, inputs, outputs):
         K_ini = jnp.where(cut, 1.0 - gamma_op - per_robot(u, "gamma"), p.K_ini)
         zero_if_cut = lambda g: jnp.where(cut, 0.0, g)
         p_run = p.with_leaves(K_ini=K_ini, K_GP=zero_if_cut(p.K_GP), K_GI=zero_if_cut(p.K_GI))
-    rates, _ = model.robot_field(p_run, st, s, F, w, (v_cmd, a_cmd, x_ref), model.Options(), f_env=per_robot(u, "e_env"))
+    rates, _ = model.robot_field(
+        p_run, st, s, F, w, (v_cmd, a_cmd, x_ref), model.Options(), f_env=per_robot(u, "e_env")
+    )
     dy = model.pack({**rates, **model.body_field(p, st, F[0], F[1])})[:, 0]
     if y.shape[0] > n:
         dy = jnp.concatenate([dy, per_robot(u, "v_ref")[:, 0]])
@@ -179,8 +185,16 @@ def _jacobians(p, y_op, t, w, contact, n, scenario, inputs, outputs):
     return jax.jacfwd(f, argnums=(0, 1, 2))(y0, u0, u0)
 
 
-def linearize(params: Params, point="rest", *, inputs=("e_env_L",), outputs=("v_r_L",), alpha=None,
-              scenario: str = "paper", dt: float = 1e-3):
+def linearize(
+    params: Params,
+    point="rest",
+    *,
+    inputs=("e_env_L",),
+    outputs=("v_r_L",),
+    alpha=None,
+    scenario: str = "paper",
+    dt: float = 1e-3,
+):
     """The closed loop linearised at `point`, as a `control.StateSpace` with named signals.
 
     Args:
@@ -201,8 +215,10 @@ def linearize(params: Params, point="rest", *, inputs=("e_env_L",), outputs=("v_
     cut_gamma = [f"gamma_{r}" in inputs for r in ROBOTS]
     for i, r in enumerate(ROBOTS):
         if cut_gamma[i] and not op.w[i]:
-            raise InputError(f"input gamma_{r}: robot {r}'s force control is off at this point, so gamma is 1 "
-                             "and there is no loop to cut (use point='limit' or a time on the limit)")
+            raise InputError(
+                f"input gamma_{r}: robot {r}'s force control is off at this point, so gamma is 1 "
+                "and there is no loop to cut (use point='limit' or a time on the limit)"
+            )
     if alpha is not None and any(cut_gamma):
         raise InputError("a gamma input cuts Eq. 8's loop; with alpha frozen there is none")
     with_ref = "v_ref_L" in inputs or "v_ref_R" in inputs
@@ -237,8 +253,16 @@ def prune(sys):
     observable = closure(C.any(axis=0), lambda s: A[s, :].any(axis=0))
     keep = np.flatnonzero(reachable & observable)
     states = [sys.state_labels[k] for k in keep]
-    return control.ss(sys.A[np.ix_(keep, keep)], sys.B[keep], sys.C[:, keep], sys.D,
-                      inputs=sys.input_labels, outputs=sys.output_labels, states=states, name=sys.name)
+    return control.ss(
+        sys.A[np.ix_(keep, keep)],
+        sys.B[keep],
+        sys.C[:, keep],
+        sys.D,
+        inputs=sys.input_labels,
+        outputs=sys.output_labels,
+        states=states,
+        name=sys.name,
+    )
 
 
 def static_gain(sys) -> np.ndarray:
@@ -318,9 +342,15 @@ def margins(loop, omega=None) -> dict:
     omega = np.logspace(-3, 5, 4001) if omega is None else omega
     gm, pm, sm, w_pc, w_gc, w_sm = control.stability_margins(control.frd(loop, omega))
     at_gc = complex(np.asarray(loop(1j * w_gc)).reshape(-1)[0]) if np.isfinite(w_gc) else complex("nan")
-    return dict(gain_margin=float(gm), phase_margin_deg=float(pm), stability_margin=float(sm),
-                w_phase_crossover=float(w_pc), w_gain_crossover=float(w_gc), w_stability_margin=float(w_sm),
-                loop_at_gain_crossover=[at_gc.real, at_gc.imag])
+    return dict(
+        gain_margin=float(gm),
+        phase_margin_deg=float(pm),
+        stability_margin=float(sm),
+        w_phase_crossover=float(w_pc),
+        w_gain_crossover=float(w_gc),
+        w_stability_margin=float(w_sm),
+        loop_at_gain_crossover=[at_gc.real, at_gc.imag],
+    )
 
 
 def poles_summary(poles: np.ndarray, dt: float) -> dict:
@@ -331,10 +361,13 @@ def poles_summary(poles: np.ndarray, dt: float) -> dict:
     least_damped = oscillatory[np.argmin(-oscillatory.real / np.abs(oscillatory))] if oscillatory.size else None
     limit = float(max_stable_dt(poles[None])[0])
     return dict(
-        fastest=float(np.abs(poles).max()), max_real=float(poles.real.max()),
+        fastest=float(np.abs(poles).max()),
+        max_real=float(poles.real.max()),
         least_damped=None if least_damped is None else [float(least_damped.real), float(least_damped.imag)],
         damping_ratio=None if least_damped is None else float(-least_damped.real / abs(least_damped)),
-        rk4_dt_limit=limit, dt=dt, dt_inside=bool(dt <= limit),
+        rk4_dt_limit=limit,
+        dt=dt,
+        dt_inside=bool(dt <= limit),
     )
 
 
@@ -362,10 +395,20 @@ def report(params: Params, alphas=(1.0, 0.5, 0.1), dt: float = 1e-3, robot: str 
     loop = grip_loop(params, "limit", robot)
     closed = poles["limit"]
     return dict(
-        robot=robot, omega=omega, bode=bode,
-        k_rob=dict(alpha=grid, simulator=k_sim, eq5=k_rob_eq5(params, grid, robot),
-                   alpha_fine=fine, eq5_fine=k_rob_eq5(params, fine, robot)),
-        poles=poles, poles_summary={pt: poles_summary(v, dt) for pt, v in poles.items()},
-        margins=margins(loop), loop_dc_gain=float(np.real(np.asarray(loop(1e-9j)).reshape(-1)[0])),
-        closed_loop_stable=bool(closed.real.max() <= 1e-9 * np.abs(closed).max()), dt=dt,
+        robot=robot,
+        omega=omega,
+        bode=bode,
+        k_rob=dict(
+            alpha=grid,
+            simulator=k_sim,
+            eq5=k_rob_eq5(params, grid, robot),
+            alpha_fine=fine,
+            eq5_fine=k_rob_eq5(params, fine, robot),
+        ),
+        poles=poles,
+        poles_summary={pt: poles_summary(v, dt) for pt, v in poles.items()},
+        margins=margins(loop),
+        loop_dc_gain=float(np.real(np.asarray(loop(1e-9j)).reshape(-1)[0])),
+        closed_loop_stable=bool(closed.real.max() <= 1e-9 * np.abs(closed).max()),
+        dt=dt,
     )

@@ -30,19 +30,33 @@ def setting(default, help: str, flag: str | None = None, choices=None):
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    scenario: str = setting("carry", "scenario: the command profile, its horizon and its metric windows",
-                            "--scenario", lambda: scenarios.SCENARIOS)
-    switch: str = setting("hard", "the switch swi of Eq. 8: hard (the reference model) or a smooth surrogate",
-                          "--switch", lambda: model.SWITCHES)
-    contact: str = setting("unilateral", "gripper contact: unilateral (pushes, never pulls) or bilateral",
-                           "--contact", lambda: model.CONTACTS)
-    integrator: str | None = setting(None, "integrator (default: the registered default for the switch)",
-                                     "--integrator", lambda: INTEGRATORS)
+    scenario: str = setting(
+        "carry",
+        "scenario: the command profile, its horizon and its metric windows",
+        "--scenario",
+        lambda: scenarios.SCENARIOS,
+    )
+    switch: str = setting(
+        "hard",
+        "the switch swi of Eq. 8: hard (the reference model) or a smooth surrogate",
+        "--switch",
+        lambda: model.SWITCHES,
+    )
+    contact: str = setting(
+        "unilateral",
+        "gripper contact: unilateral (pushes, never pulls) or bilateral",
+        "--contact",
+        lambda: model.CONTACTS,
+    )
+    integrator: str | None = setting(
+        None, "integrator (default: the registered default for the switch)", "--integrator", lambda: INTEGRATORS
+    )
     dt: float = setting(1e-3, "fixed step in s", "--dt")
     T: float | None = setting(None, "horizon in s (default: the scenario's)", "--T")
     dtype: str | None = setting(None, "float32 or float64 (default: the parameters' own)")
-    gamma_min: float | None = setting(None, "floor on gamma (default: none; the paper leaves gamma unclipped)",
-                                      "--gamma-min")
+    gamma_min: float | None = setting(
+        None, "floor on gamma (default: none; the paper leaves gamma unclipped)", "--gamma-min"
+    )
     force_bound: float = setting(1e6, "a grip force beyond this, in N, counts as divergence", "--force-bound")
     metrics: tuple | None = setting(None, "the metrics to compute (default: every registered one)")
 
@@ -50,7 +64,9 @@ class Config:
         if self.metrics is None:
             object.__setattr__(self, "metrics", tuple(objectives.METRICS))
         elif not isinstance(self.metrics, tuple):
-            object.__setattr__(self, "metrics", tuple(self.metrics) if isinstance(self.metrics, (list, tuple)) else self.metrics)
+            object.__setattr__(
+                self, "metrics", tuple(self.metrics) if isinstance(self.metrics, (list, tuple)) else self.metrics
+            )
 
     @classmethod
     def of(cls, config: "Config | str | None" = None, **overrides) -> "Config":
@@ -65,8 +81,11 @@ class Config:
             raise InputError(f"expected a Config or a scenario name, got {type(config).__name__}", "scenario")
         unknown = set(overrides) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
-            raise InputError(f"unknown setting {sorted(unknown)[0]!r}; the settings are: "
-                             f"{', '.join(f.name for f in dataclasses.fields(cls))}", sorted(unknown)[0])
+            raise InputError(
+                f"unknown setting {sorted(unknown)[0]!r}; the settings are: "
+                f"{', '.join(f.name for f in dataclasses.fields(cls))}",
+                sorted(unknown)[0],
+            )
         return dataclasses.replace(base, **overrides) if overrides else base
 
     @property
@@ -93,13 +112,17 @@ class Config:
         scenarios.get(self.scenario)
         model.check_options(self.options)
         if self.integrator is not None and self.integrator not in INTEGRATORS:
-            raise InputError(f"unknown integrator {self.integrator!r}; choose one of: {', '.join(INTEGRATORS)}",
-                             "integrator")
+            raise InputError(
+                f"unknown integrator {self.integrator!r}; choose one of: {', '.join(INTEGRATORS)}", "integrator"
+            )
         integrator = INTEGRATORS[self.method]
         if self.switch not in integrator.switches:
-            raise InputError(f"the {self.method} integrator does not integrate the {self.switch} switch (it takes: "
-                             f"{', '.join(integrator.switches)}); the {self.switch} switch runs with "
-                             f"{default_for(self.switch)}", "integrator")
+            raise InputError(
+                f"the {self.method} integrator does not integrate the {self.switch} switch (it takes: "
+                f"{', '.join(integrator.switches)}); the {self.switch} switch runs with "
+                f"{default_for(self.switch)}",
+                "integrator",
+            )
         check_positive("dt", self.dt, " s")
         if self.T is not None:
             check_positive("T", self.T, " s")
@@ -112,8 +135,11 @@ class Config:
         if self.dt > self.horizon:
             raise InputError(f"dt = {self.dt:g} s is longer than the horizon T = {self.horizon:g} s", "dt")
         if self.horizon / self.dt > MAX_STEPS:
-            raise InputError(f"T / dt = {self.horizon:g} s / {self.dt:g} s = {self.horizon / self.dt:.3g} steps; at most "
-                             f"{MAX_STEPS:,} (a 32-bit step counter): use a larger dt or a shorter T", "dt")
+            raise InputError(
+                f"T / dt = {self.horizon:g} s / {self.dt:g} s = {self.horizon / self.dt:.3g} steps; at most "
+                f"{MAX_STEPS:,} (a 32-bit step counter): use a larger dt or a shorter T",
+                "dt",
+            )
         return self
 
     def cast(self, params: Params) -> Params:
@@ -125,8 +151,10 @@ class Config:
 
     def describe(self) -> str:
         dtype = self.dtype or ("float64" if jnp.zeros(()).dtype == jnp.float64 else "float32")
-        return (f"scenario {self.scenario}, switch {self.switch}, contact {self.contact}, integrator {self.method}, "
-                f"dt {self.dt:g} s, T {self.horizon:g} s, {dtype}")
+        return (
+            f"scenario {self.scenario}, switch {self.switch}, contact {self.contact}, integrator {self.method}, "
+            f"dt {self.dt:g} s, T {self.horizon:g} s, {dtype}"
+        )
 
 
 def step_size_note(config: Config) -> str | None:
@@ -137,13 +165,21 @@ def step_size_note(config: Config) -> str | None:
         return None
     converged = measured[key]
     if converged is None:
-        return (f"note: {config.method} with the {config.switch} switch did not reach the accuracy tolerances of the "
-                f"dt -> 0 limit in the {config.scenario} scenario at any step measured (docs/model.md, 'Step size')"
-                + (f"; {default_for(config.switch)} meets them at dt = 1e-3" if default_for(config.switch) != config.method else ""))
+        return (
+            f"note: {config.method} with the {config.switch} switch did not reach the accuracy tolerances of the "
+            f"dt -> 0 limit in the {config.scenario} scenario at any step measured (docs/model.md, 'Step size')"
+            + (
+                f"; {default_for(config.switch)} meets them at dt = 1e-3"
+                if default_for(config.switch) != config.method
+                else ""
+            )
+        )
     if config.dt > converged * (1 + 1e-9):
-        return (f"note: {config.scenario} with the {config.switch} switch and {config.method} needs dt <= {converged:g} s "
-                f"to be within the accuracy tolerances of the dt -> 0 limit (docs/model.md, 'Step size'); this run "
-                f"used dt = {config.dt:g} s")
+        return (
+            f"note: {config.scenario} with the {config.switch} switch and {config.method} needs dt <= {converged:g} s "
+            f"to be within the accuracy tolerances of the dt -> 0 limit (docs/model.md, 'Step size'); this run "
+            f"used dt = {config.dt:g} s"
+        )
     return None
 
 
@@ -158,6 +194,8 @@ def check_every(config: Config, every) -> None:
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
         raise InputError(f"every is {every!r}: it must be a whole number of steps, at least 1", "every")
     if every > config.n_steps:
-        raise InputError(f"every = {every} is more than the run's {config.n_steps} steps: nothing would be "
-                         f"recorded after t = 0 (use every <= {config.n_steps})", "every")
-
+        raise InputError(
+            f"every = {every} is more than the run's {config.n_steps} steps: nothing would be "
+            f"recorded after t = 0 (use every <= {config.n_steps})",
+            "every",
+        )

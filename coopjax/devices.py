@@ -38,7 +38,8 @@ def use_all_cores(n: int | None = None) -> int:
         if jax.device_count() != n:
             raise InputError(
                 f"JAX has already started with {jax.device_count()} device(s): call coopjax.use_all_cores() "
-                "before anything creates a JAX array (first thing after the imports)") from None
+                "before anything creates a JAX array (first thing after the imports)"
+            ) from None
     return jax.device_count()
 
 
@@ -49,7 +50,9 @@ def _warn_one_core(batch: int) -> None:
         _warned = True
         warnings.warn(
             f"a batch of {batch} runs on 1 of this machine's {cores} cores: call coopjax.use_all_cores() "
-            "first thing in your program to shard batches over all of them", stacklevel=4)
+            "first thing in your program to shard batches over all of them",
+            stacklevel=4,
+        )
 
 
 def batch_spec(x, batched: bool = True) -> jax.sharding.PartitionSpec:
@@ -102,8 +105,16 @@ def _unpad(out, size, batched):
     return jax.tree_util.tree_map(lambda x, b: x[..., :size] if b else x, out, batched(out))
 
 
-def run(fn, params, *, batched=_all_batched, block: int = BLOCK, fixed_block: bool = False, shard_traced: bool = False,
-        devices: int | None = None):
+def run(
+    fn,
+    params,
+    *,
+    batched=_all_batched,
+    block: int = BLOCK,
+    fixed_block: bool = False,
+    shard_traced: bool = False,
+    devices: int | None = None,
+):
     """`fn(params)` on a batch of parameter sets (the last axis of every leaf), over the local devices.
 
     - A concrete batch over several devices is cut on the host into slabs of `devices x block`
@@ -138,8 +149,10 @@ def run(fn, params, *, batched=_all_batched, block: int = BLOCK, fixed_block: bo
     host = _pad([np.asarray(x) for x in leaves], pad, np)
     program = _compiled(fn, n, batched, n > 1)
     place = (lambda t: _place(t, n)) if n > 1 else (lambda t: t)
-    parts = [program(place(jax.tree_util.tree_unflatten(tree, [x[..., s:s + slab] for x in host])))
-             for s in range(0, size + pad, slab)]
+    parts = [
+        program(place(jax.tree_util.tree_unflatten(tree, [x[..., s : s + slab] for x in host])))
+        for s in range(0, size + pad, slab)
+    ]
     if len(parts) == 1:
         return _unpad(parts[0], size, batched)
     flags = batched(parts[0])

@@ -26,8 +26,9 @@ BOOKKEEPING = {
     "dt_limit": "s, the largest stable step of the linearised loop",
     "status": "|".join(LABELS),
 }
-STEP_ERROR = {"step_error": "tolerances: the two-step check's largest disagreement between dt and dt/2 "
-                            "(above 1: step_artefact)"}
+STEP_ERROR = {
+    "step_error": "tolerances: the two-step check's largest disagreement between dt and dt/2 (above 1: step_artefact)"
+}
 
 
 def columns(config: Config, check_step: bool = False) -> tuple[str, ...]:
@@ -71,13 +72,18 @@ def evaluate(params: Params, config: Config, *, check_step: bool = False, block:
     diverged = out["finite"] < 0.5
     # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of unknown
     # cause (`t_diverged` says when any of them blew up).
-    status = np.select([growth > 0, config.dt > limit, diverged],
-                       [Status.UNSTABLE_LOOP, Status.STEP_BEYOND_LIMIT, Status.DIVERGED], Status.OK)
+    status = np.select(
+        [growth > 0, config.dt > limit, diverged],
+        [Status.UNSTABLE_LOOP, Status.STEP_BEYOND_LIMIT, Status.DIVERGED],
+        Status.OK,
+    )
     out["dt_limit"] = limit
     if check_step:
         fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block)
-        error = step_check.step_error({n: out[n] for n in step_check.METRICS},
-                                      {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS})
+        error = step_check.step_error(
+            {n: out[n] for n in step_check.METRICS},
+            {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS},
+        )
         status = np.where((status == Status.OK) & step_check.artefacts(error), Status.STEP_ARTEFACT, status)
         out["step_error"] = error
     out["status"] = status.astype(np.float64)

@@ -104,7 +104,9 @@ def check_options(options: Options) -> None:
         raise InputError(f"unknown switch {options.switch!r}; choose one of: {', '.join(SWITCHES)}", "switch")
     if options.contact not in CONTACTS:
         raise InputError(f"unknown contact {options.contact!r}; choose one of: {', '.join(CONTACTS)}", "contact")
-    if options.gamma_min is not None and not (isinstance(options.gamma_min, (int, float)) and np.isfinite(options.gamma_min)):
+    if options.gamma_min is not None and not (
+        isinstance(options.gamma_min, (int, float)) and np.isfinite(options.gamma_min)
+    ):
         raise InputError(f"gamma_min is {options.gamma_min!r}: a finite number, or None for no floor", "gamma_min")
 
 

@@ -169,8 +169,11 @@ def resolve_dtype(dtype):
     if dtype not in (jnp.float32, jnp.float64):
         raise InputError(f"dtype {dtype.name}: choose float32 or float64", "dtype")
     if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-        raise InputError("float64 needs JAX's 64-bit mode: call jax.config.update('jax_enable_x64', True) "
-                         "before anything creates an array", "dtype")
+        raise InputError(
+            "float64 needs JAX's 64-bit mode: call jax.config.update('jax_enable_x64', True) "
+            "before anything creates an array",
+            "dtype",
+        )
     return dtype
 
 
@@ -306,7 +309,9 @@ def validate(params: Params) -> None:
         if spec.check == "positive" and (x <= 0).any():
             raise InputError(f"{where(x <= 0)} is {_first(x, x <= 0)} {spec.unit}: it must be positive ({spec.doc})", n)
         if spec.check == "nonnegative" and (x < 0).any():
-            raise InputError(f"{where(x < 0)} is {_first(x, x < 0)} {spec.unit}: it must not be negative ({spec.doc})", n)
+            raise InputError(
+                f"{where(x < 0)} is {_first(x, x < 0)} {spec.unit}: it must not be negative ({spec.doc})", n
+            )
 
 
 def _first(x, mask):

@@ -47,8 +47,16 @@ def plot_run(trajectory, params, scenario: str, path: str, title: str | None = N
     ax.axhline(F_lim[0], color="k", ls="--", lw=1, label=f"F_lim = {F_lim[0]:g} N")
     if peak is not None and np.isfinite(peak):
         k = np.unravel_index(np.nanargmax(F), F.shape)
-        ax.plot([t[k[0]]], [peak], "v", color="k", ms=7, label=f"peak {peak:.4g} N (impact located between steps)"
-                if peak > F[k] * (1 + 1e-9) else f"peak {peak:.4g} N")
+        ax.plot(
+            [t[k[0]]],
+            [peak],
+            "v",
+            color="k",
+            ms=7,
+            label=f"peak {peak:.4g} N (impact located between steps)"
+            if peak > F[k] * (1 + 1e-9)
+            else f"peak {peak:.4g} N",
+        )
     if scenario == "carry":
         F_max = float(np.asarray(params.F_max))
         ax.axhline(F_max, color="grey", ls=":", lw=1, label=f"F_max = {F_max:g} N")
@@ -90,8 +98,11 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     """Scatter of y against x for the trusted samples; the flagged ones (status not ok) in a strip of
     their own below, never as if they had a value; histograms of the grip metrics."""
     plt = _pyplot()
-    status = np.asarray(columns["status"]) if "status" in columns else np.where(
-        np.asarray(columns["finite"]) > 0.5, Status.OK.label, Status.DIVERGED.label)
+    status = (
+        np.asarray(columns["status"])
+        if "status" in columns
+        else np.where(np.asarray(columns["finite"]) > 0.5, Status.OK.label, Status.DIVERGED.label)
+    )
     ok = status == Status.OK.label
     xs, ys = np.asarray(columns[x], float), np.asarray(columns[y], float)
     shown = ok & np.isfinite(xs) & np.isfinite(ys)
@@ -114,12 +125,16 @@ def plot_sweep(columns, x: str, y: str, color: str | None, path: str) -> None:
     if logx:
         ax.set_xscale("log")
     ax.set_ylabel(_label(y))
-    ax.set_title(f"{y} against {x}: {int(shown.sum())} trusted samples of {len(xs)}"
-                 + (f"; {int((~ok).sum())} flagged (strip below)" if (~ok).any() else ""))
+    ax.set_title(
+        f"{y} against {x}: {int(shown.sum())} trusted samples of {len(xs)}"
+        + (f"; {int((~ok).sum())} flagged (strip below)" if (~ok).any() else "")
+    )
     strip = fig.add_subplot(grid[1, :], sharex=ax)
     for k, s in enumerate(sorted(set(status[~ok].tolist()))):
         mask = (status == s) & ~ok
-        strip.scatter(xs[mask], np.full(mask.sum(), k), marker="x", s=14, color=f"C{k + 1}", label=f"{s} ({mask.sum()})")
+        strip.scatter(
+            xs[mask], np.full(mask.sum(), k), marker="x", s=14, color=f"C{k + 1}", label=f"{s} ({mask.sum()})"
+        )
     strip.set_yticks([])
     strip.set_xlabel(_label(x))
     if (~ok).any():
@@ -170,8 +185,23 @@ def plot_k_rob(report: dict, path: str) -> None:
     plt = _pyplot()
     k = report["k_rob"]
     fig, ax = plt.subplots(figsize=(7, 5), constrained_layout=True)
-    ax.semilogy(k["alpha_fine"], k["eq5_fine"], "-", color="k", lw=1, label="Eq. 5: 1/K = 1/(mu_H K_c) + beta_H (1 - alpha)/(mu_H K_f)")
-    ax.semilogy(k["alpha"], k["simulator"], "o", color="C1", ms=5, mfc="none", label="simulator: static deflection under a constant effort")
+    ax.semilogy(
+        k["alpha_fine"],
+        k["eq5_fine"],
+        "-",
+        color="k",
+        lw=1,
+        label="Eq. 5: 1/K = 1/(mu_H K_c) + beta_H (1 - alpha)/(mu_H K_f)",
+    )
+    ax.semilogy(
+        k["alpha"],
+        k["simulator"],
+        "o",
+        color="C1",
+        ms=5,
+        mfc="none",
+        label="simulator: static deflection under a constant effort",
+    )
     ax.set_xlabel("alpha (gamma frozen)")
     ax.set_ylabel("driving-point stiffness K_rob [N/m]")
     ax.set_title(f"Robot {report['robot']}: stiffness softens as gamma falls (Eq. 5; Eq. 7 at alpha = 1)")
@@ -196,8 +226,15 @@ def plot_poles(report: dict, path: str) -> None:
         for point, poles in report["poles"].items():
             marker, c, label = styles[point]
             s = report["poles_summary"][point]
-            ax.plot(poles.real, poles.imag, marker, color=c, ms=6, mfc="none" if marker == "o" else c,
-                    label=f"{label}: fastest {s['fastest']:.4g} 1/s, RK4 needs dt <= {s['rk4_dt_limit']:.3g} s")
+            ax.plot(
+                poles.real,
+                poles.imag,
+                marker,
+                color=c,
+                ms=6,
+                mfc="none" if marker == "o" else c,
+                label=f"{label}: fastest {s['fastest']:.4g} 1/s, RK4 needs dt <= {s['rk4_dt_limit']:.3g} s",
+            )
         ax.axhline(0, color="k", lw=0.5)
         ax.axvline(0, color="k", lw=0.5)
         ax.set_xlabel("Re(lambda) [1/s]")

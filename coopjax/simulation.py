@@ -33,8 +33,9 @@ class Run(NamedTuple):
         return objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps)
 
     def __call__(self, params: Params) -> Solution:
-        return integrate(params, self.config, self.metric_set(), every=self.every, checkpoint=self.checkpoint,
-                         unroll=self.unroll)
+        return integrate(
+            params, self.config, self.metric_set(), every=self.every, checkpoint=self.checkpoint, unroll=self.unroll
+        )
 
 
 class MetricsOf(NamedTuple):
@@ -64,8 +65,16 @@ def memory_limit() -> int:
         return 8 * 2**30
 
 
-def simulate(params: Params, config: Config | str = "carry", *, every: int | None = None, checkpoint: bool | str = True,
-             unroll: int = 1, check_dt: bool = True, **settings) -> Solution:
+def simulate(
+    params: Params,
+    config: Config | str = "carry",
+    *,
+    every: int | None = None,
+    checkpoint: bool | str = True,
+    unroll: int = 1,
+    check_dt: bool = True,
+    **settings,
+) -> Solution:
     """Simulate one parameter set or a batch of them (leaves with a trailing batch axis).
 
     Args:
@@ -91,25 +100,33 @@ def simulate(params: Params, config: Config | str = "carry", *, every: int | Non
         raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
     params = config.cast(params)
     if config.switch == "hard" and config.method == "rk4" and _differentiated(params):
-        warnings.warn("differentiating the hard switch under plain RK4 differentiates its chatter across F = F_lim: "
-                      "the derivatives are noise (often NaN or huge). Use integrator='filippov' (the default for the hard "
-                      "switch), whose derivatives are those of the sliding motion (docs/model.md, 'Derivatives')",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            "differentiating the hard switch under plain RK4 differentiates its chatter across F = F_lim: "
+            "the derivatives are noise (often NaN or huge). Use integrator='filippov' (the default for the hard "
+            "switch), whose derivatives are those of the sliding motion (docs/model.md, 'Derivatives')",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if check_dt:
         stability.check_step(params, config)
     batched, added = as_batched(params)
     if every is not None:
         size = record_size(config, every, int(np.prod(batched.batch_shape)))
         if size > memory_limit():
-            raise InputError(f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
-                             f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often "
-                             "(a larger every) or run a shorter T", "every")
+            raise InputError(
+                f"recording every {every} steps of {config.n_steps} needs {size / 2**30:.3g} GiB, more than "
+                f"half of this machine's memory ({memory_limit() / 2**30:.3g} GiB): record less often "
+                "(a larger every) or run a shorter T",
+                "every",
+            )
     solution = devices.run(Run(config, every, checkpoint, unroll), batched, batched=batched_leaves)
     if added:
         squeeze = lambda x: x[..., 0]
         trajectory = solution.trajectory
         if trajectory is not None:
-            trajectory = Trajectory(trajectory.t, squeeze(trajectory.y), jax.tree_util.tree_map(squeeze, trajectory.aux))
+            trajectory = Trajectory(
+                trajectory.t, squeeze(trajectory.y), jax.tree_util.tree_map(squeeze, trajectory.aux)
+            )
         solution = Solution(jax.tree_util.tree_map(squeeze, solution.metrics), squeeze(solution.y_final), trajectory)
     return solution
 

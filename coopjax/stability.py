@@ -86,20 +86,26 @@ def check_step(params: Params, config) -> None:
         raise InputError(
             f"these parameters make the loop unstable{where(worst)}: its linearisation has a mode growing at "
             f"{growth[worst]:.3g} 1/s, so no step size helps; check the signs and sizes of the gains "
-            "(e.g. K_GP, F_lim, masses)", "params")
+            "(e.g. K_GP, F_lim, masses)",
+            "params",
+        )
     limit = INTEGRATORS[config.method].stable_dt(eig)
     worst = int(np.argmin(limit))
     if limit[worst] < MIN_PRACTICAL_DT:
         raise InputError(
             f"these parameters make the loop extremely stiff{where(worst)}: its fastest linearised mode is "
             f"{np.abs(eig[worst]).max():.3g} 1/s, which a fixed step resolves only below {limit[worst]:.3g} s; "
-            "check the parameters (a tiny mass or a huge gain?)", "params")
+            "check the parameters (a tiny mass or a huge gain?)",
+            "params",
+        )
     if config.dt > limit[worst]:
         fastest = np.abs(eig[worst]).max()
         raise InputError(
             f"dt = {config.dt:g} s is too large for {config.method} on this loop{where(worst)}: its fastest linearised "
             f"mode is {fastest:.3g} 1/s, so its stages are stable only for dt <= {limit[worst]:.3g} s; "
-            f"use dt <= {limit[worst] / 4:.2g} s for accuracy", "dt")
+            f"use dt <= {limit[worst] / 4:.2g} s for accuracy",
+            "dt",
+        )
 
 
 __all__ = ["check_step", "fastest_modes", "growing_mode", "max_stable_dt", "rk4_amplification", "stable_dt"]

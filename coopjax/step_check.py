@@ -42,8 +42,13 @@ def step_error(coarse: dict, fine: dict) -> np.ndarray:
             gap = np.where((kind == "relative") & (a == b), 0.0, gap)  # 0/0 where both are 0
         ratios.append(gap / tol)
     out = np.max(ratios, axis=0)
-    bad = np.any([~np.isfinite(np.asarray(coarse[n], np.float64)) | ~np.isfinite(np.asarray(fine[n], np.float64))
-                  for n in METRICS], axis=0)
+    bad = np.any(
+        [
+            ~np.isfinite(np.asarray(coarse[n], np.float64)) | ~np.isfinite(np.asarray(fine[n], np.float64))
+            for n in METRICS
+        ],
+        axis=0,
+    )
     return np.where(bad, np.nan, out)
 
 

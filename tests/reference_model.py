@@ -1,4 +1,5 @@
-"""An independent NumPy transcription of the model and its scenarios (docs/model.md; smooth and blend modes), for solve_ivp.
+"""An independent NumPy transcription of the model and its scenarios (docs/model.md; smooth and blend modes),
+for solve_ivp.
 
 Written from the specification, not from coopjax's code: scalar per-robot loops, the e_c solve done
 as an explicit 3x3 linear system, its own command profiles.
@@ -9,9 +10,30 @@ import math
 import numpy as np
 
 TABLE1 = dict(
-    M_v=10.0, M_r=1.0, K_g=1000.0, R_g=100.0, M_c=10.0, R_c=5.0, K_c=500.0, M_f=1.0, R_f=200.0,
-    K_f=10.0, mu_H=300.0, beta_H=300.0, F_lim=10.0, K_ini=0.0, K_GP=0.5, K_GI=0.1, tau=1.25,
-    tau_e=10 / 6, G_e=600.0, rho=200.0, M_b=1.0, k_F=0.5, k_c=0.5, eps_delta=1e-4,
+    M_v=10.0,
+    M_r=1.0,
+    K_g=1000.0,
+    R_g=100.0,
+    M_c=10.0,
+    R_c=5.0,
+    K_c=500.0,
+    M_f=1.0,
+    R_f=200.0,
+    K_f=10.0,
+    mu_H=300.0,
+    beta_H=300.0,
+    F_lim=10.0,
+    K_ini=0.0,
+    K_GP=0.5,
+    K_GI=0.1,
+    tau=1.25,
+    tau_e=10 / 6,
+    G_e=600.0,
+    rho=200.0,
+    M_b=1.0,
+    k_F=0.5,
+    k_c=0.5,
+    eps_delta=1e-4,
 )
 
 
@@ -27,7 +49,11 @@ def command(scenario, robot, t):
     s = 1.0 if robot == 0 else -1.0
     if scenario == "paper":
         A = 10.0 * s
-        return A * (1 - math.cos(2 * math.pi * t)), A * 2 * math.pi * math.sin(2 * math.pi * t), A * (t - math.sin(2 * math.pi * t) / (2 * math.pi))
+        return (
+            A * (1 - math.cos(2 * math.pi * t)),
+            A * 2 * math.pi * math.sin(2 * math.pi * t),
+            A * (t - math.sin(2 * math.pi * t) / (2 * math.pi)),
+        )
     v = a = x = 0.0
     for t0, A in ((0.0, 0.1 * s), (1.0, 0.5), (2.0, -0.2 * s)):
         u = t - t0
@@ -61,8 +87,19 @@ def robot_rates(p, s, yi, F, w, F_gain, v_cmd, a_cmd, x_ref):
     M = np.array([[1.0, p["M_c"], p["M_c"] * g], [-p["mu_H"], p["M_r"], 0.0], [-1.0, 0.0, p["M_f"]]])
     rhs_vec = np.array([p["M_c"] * a_ref + p["R_c"] * err + p["K_c"] * q_c, -s * F, -(p["R_f"] * v_f + p["K_f"] * x_f)])
     e_c, a_r, a_f = np.linalg.solve(M, rhs_vec)
-    return np.array([v_r, a_r, v_v, -p["mu_H"] * e_c / p["M_v"], err, v_f, a_f,
-                     w * (F - p["F_lim"]) - p["tau"] * Z - (1 - w) * p["rho"] * Z, dY])
+    return np.array(
+        [
+            v_r,
+            a_r,
+            v_v,
+            -p["mu_H"] * e_c / p["M_v"],
+            err,
+            v_f,
+            a_f,
+            w * (F - p["F_lim"]) - p["tau"] * Z - (1 - w) * p["rho"] * Z,
+            dY,
+        ]
+    )
 
 
 def rhs(t, y, scenario, p=TABLE1, switch="smooth"):
@@ -71,17 +108,17 @@ def rhs(t, y, scenario, p=TABLE1, switch="smooth"):
     dy = np.zeros(20)
     forces = []
     for i, s in enumerate((1.0, -1.0)):
-        yi = y[i * 9:(i + 1) * 9]
+        yi = y[i * 9 : (i + 1) * 9]
         F = force(p, s * (yi[0] - x_o), s * (yi[1] - v_o))
         forces.append(F)
         w = sigmoid((F - p["F_lim"]) / p["k_F"])
         command_i = command(scenario, i, t)
         if switch == "smooth":
-            dy[i * 9:(i + 1) * 9] = robot_rates(p, s, yi, F, w, F, *command_i)
+            dy[i * 9 : (i + 1) * 9] = robot_rates(p, s, yi, F, w, F, *command_i)
         else:  # blend: w-weighted mix of the switch-off and switch-on fields (on-field gamma at F >= F_lim)
             off = robot_rates(p, s, yi, F, 0.0, F, *command_i)
             on = robot_rates(p, s, yi, F, 1.0, max(F, p["F_lim"]), *command_i)
-            dy[i * 9:(i + 1) * 9] = (1 - w) * off + w * on
+            dy[i * 9 : (i + 1) * 9] = (1 - w) * off + w * on
     dy[18] = v_o
     dy[19] = (forces[0] - forces[1]) / p["M_b"]
     return dy, forces

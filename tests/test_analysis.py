@@ -38,7 +38,9 @@ def test_linearised_admittance_is_eq4_at_25_frequencies(alpha):
     omega = np.logspace(-2, 3, 25)
     ours = np.asarray(sys_(1j * omega)).reshape(-1)
     np.testing.assert_allclose(ours, eq4(alpha, 1j * omega), rtol=1e-6)
-    np.testing.assert_allclose(analysis.admittance_eq4(cj.make_params(), alpha, 1j * omega), eq4(alpha, 1j * omega), rtol=1e-12)
+    np.testing.assert_allclose(
+        analysis.admittance_eq4(cj.make_params(), alpha, 1j * omega), eq4(alpha, 1j * omega), rtol=1e-12
+    )
 
 
 def test_static_stiffness_is_eq5_and_eq7():
@@ -97,6 +99,7 @@ def test_linearisation_at_a_simulated_state_predicts_a_perturbed_run():
     def run(y):
         def body(y, k):
             return rk4(field, t0 + k * dt, y, dt), None
+
         return jax.lax.scan(body, y, jnp.arange(int(round(tau / dt))))[0]
 
     rng = np.random.default_rng(0)
@@ -126,14 +129,17 @@ def test_cutting_the_gain_modulation_loop_and_closing_it_again_gives_the_closed_
     assert analysis.margins(loop)["stability_margin"] > 0
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(point="middle"), "point 'middle'"),
-    (dict(inputs="force"), "unknown input 'force'"),
-    (dict(outputs=("F_L", "F_L")), "names one twice"),
-    (dict(point="rest", alpha=0.5), "use point='limit'"),
-    (dict(point="rest", inputs="gamma_L"), "force control is off"),
-    (dict(point=-1.0), "time >= 0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(point="middle"), "point 'middle'"),
+        (dict(inputs="force"), "unknown input 'force'"),
+        (dict(outputs=("F_L", "F_L")), "names one twice"),
+        (dict(point="rest", alpha=0.5), "use point='limit'"),
+        (dict(point="rest", inputs="gamma_L"), "force control is off"),
+        (dict(point=-1.0), "time >= 0"),
+    ],
+)
 def test_bad_requests_are_one_clear_value_error(kwargs, message):
     with pytest.raises(ValueError, match=message):
         cj.linearize(cj.make_params(), **kwargs)
@@ -160,11 +166,19 @@ def test_analyze_command_writes_its_figures_and_refuses_bad_input(fresh_dir, cap
     result = json.load(open(fresh_dir / "a.json"))
     assert max(result["eq4_max_relative_difference"].values()) < 1e-6
     assert result["margins"]["stability_margin"] == pytest.approx(
-        analysis.margins(analysis.grip_loop(cj.make_params()))["stability_margin"], rel=1e-9)
+        analysis.margins(analysis.grip_loop(cj.make_params()))["stability_margin"], rel=1e-9
+    )
     assert "phase margin" in out and "RK4 stable for dt <=" in out
     before = sorted(p.name for p in fresh_dir.iterdir())
-    for args in (["--alpha", "1,x"], ["--alpha", "1,1"], ["--dt", "-1"], ["--set", "K_GP=abc"], ["--set", "K_GQ=1"],
-                 ["--out", "nowhere/a"], ["--robot", "Q"]):
+    for args in (
+        ["--alpha", "1,x"],
+        ["--alpha", "1,1"],
+        ["--dt", "-1"],
+        ["--set", "K_GP=abc"],
+        ["--set", "K_GQ=1"],
+        ["--out", "nowhere/a"],
+        ["--robot", "Q"],
+    ):
         assert main(["analyze", *args]) == 2, args
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, (args, err)

@@ -46,7 +46,9 @@ def test_straight_through_is_hard_forward_and_has_gradients():
     hard = cj.simulate(p, "paper", switch="hard", integrator="rk4", T=0.5).metrics
     st = cj.simulate(p, "paper", switch="straight_through", T=0.5).metrics
     assert float(st.peak_grip) == pytest.approx(float(hard.peak_grip), rel=1e-12)
-    g = jax.grad(lambda k: cj.simulate(cj.make_params(K_GP=k), "paper", switch="straight_through", T=0.5).metrics.peak_grip)(0.5)
+    g = jax.grad(
+        lambda k: cj.simulate(cj.make_params(K_GP=k), "paper", switch="straight_through", T=0.5).metrics.peak_grip
+    )(0.5)
     assert np.isfinite(float(g)) and float(g) != 0.0
 
 
@@ -54,7 +56,8 @@ def test_straight_through_is_hard_forward_and_has_gradients():
 def test_bilateral_contact_pulls_where_unilateral_lets_go():
     # In the release phase the tips back away: a unilateral gripper goes slack, a bilateral one pulls.
     run = lambda contact: np.asarray(
-        cj.simulate(cj.make_params(), "carry", switch="smooth", contact=contact, dt=1e-4, every=100).trajectory.aux.F)
+        cj.simulate(cj.make_params(), "carry", switch="smooth", contact=contact, dt=1e-4, every=100).trajectory.aux.F
+    )
     unilateral, bilateral = run("unilateral"), run("bilateral")
     assert unilateral.min() >= 0.0
     assert bilateral.min() < -1.0
@@ -69,11 +72,13 @@ def test_use_all_cores_shards_a_batch_and_changes_only_round_off(tmp_path):
     import subprocess
     import sys
 
-    code = ("import sys, numpy as np, coopjax as cj; cj.use_all_cores(2); import jax; "
-            "jax.config.update('jax_enable_x64', True); "
-            "s = cj.simulate(cj.make_params(M_b=np.geomspace(0.5, 5, 5), K_GP=np.linspace(0.3, 0.9, 5)), 'paper', T=0.5); "
-            "assert jax.device_count() == 2 and s.metrics.peak_grip.shape == (5,); "
-            "np.save(sys.argv[1], np.concatenate([np.stack([np.asarray(x, np.float64) for x in s.metrics]), s.y_final]))")
+    code = (
+        "import sys, numpy as np, coopjax as cj; cj.use_all_cores(2); import jax; "
+        "jax.config.update('jax_enable_x64', True); "
+        "s = cj.simulate(cj.make_params(M_b=np.geomspace(0.5, 5, 5), K_GP=np.linspace(0.3, 0.9, 5)), 'paper', T=0.5); "
+        "assert jax.device_count() == 2 and s.metrics.peak_grip.shape == (5,); "
+        "np.save(sys.argv[1], np.concatenate([np.stack([np.asarray(x, np.float64) for x in s.metrics]), s.y_final]))"
+    )
     out = tmp_path / "two.npy"
     run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr

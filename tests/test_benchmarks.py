@@ -23,15 +23,25 @@ def _row(impl, dtype, devices, rate, B=4096, integrator=None):
 
 
 def test_the_summary_states_coopjax_against_the_strong_peer_and_the_peak():
-    rows = [_row("coopjax", "float64", 2, 8e6), _row("coopjax", "float32", 2, 12e6), _row("coopjax", "float64", 1, 4e6),
-            _row("coopjax_filippov", "float64", 2, 2e6), _row("coopjax_filippov", "float32", 2, 3e6),
-            _row("strong_peer", "float64", 2, 10e6, integrator="filippov"),
-            _row("strong_peer", "float32", 2, 20e6, integrator="filippov"),
-            _row("strong_peer", "float64", 2, 16e6, integrator="rk4"),
-            _row("strong_peer", "float64", 2, 1e6, B=64, integrator="rk4"),  # another B: not the summary's
-            _row("numba", "float64", 2, 4e6)]
-    result = dict(throughput=rows, machine=dict(cores=2, peak_gflops_estimate=dict(float64=80.0, float32=160.0)),
-                  config=dict(T=4.0), lsoda=dict(seconds_per_set=0.1), peer_flops=dict(filippov=2000.0, rk4=1000.0))
+    rows = [
+        _row("coopjax", "float64", 2, 8e6),
+        _row("coopjax", "float32", 2, 12e6),
+        _row("coopjax", "float64", 1, 4e6),
+        _row("coopjax_filippov", "float64", 2, 2e6),
+        _row("coopjax_filippov", "float32", 2, 3e6),
+        _row("strong_peer", "float64", 2, 10e6, integrator="filippov"),
+        _row("strong_peer", "float32", 2, 20e6, integrator="filippov"),
+        _row("strong_peer", "float64", 2, 16e6, integrator="rk4"),
+        _row("strong_peer", "float64", 2, 1e6, B=64, integrator="rk4"),  # another B: not the summary's
+        _row("numba", "float64", 2, 4e6),
+    ]
+    result = dict(
+        throughput=rows,
+        machine=dict(cores=2, peak_gflops_estimate=dict(float64=80.0, float32=160.0)),
+        config=dict(T=4.0),
+        lsoda=dict(seconds_per_set=0.1),
+        peer_flops=dict(filippov=2000.0, rk4=1000.0),
+    )
     s = summarise(result)
     ratio = s["coopjax_over_strong_peer"]
     assert ratio["filippov_float64"] == pytest.approx(0.2) and ratio["filippov_float32"] == pytest.approx(0.15)
@@ -47,8 +57,13 @@ def test_the_summary_states_coopjax_against_the_strong_peer_and_the_peak():
 
 
 # Samples for the peer's agreement: light and heavy bodies (impacts, long sliding), soft and stiff gains.
-PEER_SAMPLES = dict(M_b=[0.5, 2.0, 5.0, 20.0], K_GP=[0.05, 0.5, 1.5, 0.3], K_GI=[0.01, 0.1, 0.8, 0.3],
-                    tau=[0.2, 1.25, 4.0, 1.0], G_e=[50.0, 600.0, 3000.0, 200.0])
+PEER_SAMPLES = dict(
+    M_b=[0.5, 2.0, 5.0, 20.0],
+    K_GP=[0.05, 0.5, 1.5, 0.3],
+    K_GI=[0.01, 0.1, 0.8, 0.3],
+    tau=[0.2, 1.25, 4.0, 1.0],
+    G_e=[50.0, 600.0, 3000.0, 200.0],
+)
 AGREEMENT = """
 import sys, jax
 jax.config.update("jax_enable_x64", True)
@@ -62,8 +77,14 @@ print(agreement("filippov", params, 4.0, block=3), agreement("rk4", params, 1.0,
 def test_the_strong_peer_does_the_same_step_as_coopjax():
     # The peer's own source run as Python (NUMBA_DISABLE_JIT=1), so that a change to the step that
     # forgets the peer fails here, in every run; two blocks, one partial.
-    run = subprocess.run([sys.executable, "-c", AGREEMENT.format(samples=PEER_SAMPLES)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=600, env=dict(os.environ, NUMBA_DISABLE_JIT="1"))
+    run = subprocess.run(
+        [sys.executable, "-c", AGREEMENT.format(samples=PEER_SAMPLES)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=dict(os.environ, NUMBA_DISABLE_JIT="1"),
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     filippov, rk4 = map(float, run.stdout.split())
     assert filippov <= 1e-9 and rk4 <= 1e-9, (filippov, rk4)
@@ -85,23 +106,55 @@ def test_the_compiled_strong_peer_is_coopjax_to_1e_9():
 @pytest.mark.slow
 def test_the_flop_count_of_the_peer_source():
     # RK4 is four field evaluations of both robots a step, each some 90 operations a robot.
-    run = subprocess.run([sys.executable, "-m", "benchmarks.strong_peer", "--T", "0.05"], cwd=ROOT, capture_output=True,
-                         text=True, timeout=600, env=dict(os.environ, NUMBA_DISABLE_JIT="1"))
+    run = subprocess.run(
+        [sys.executable, "-m", "benchmarks.strong_peer", "--T", "0.05"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=dict(os.environ, NUMBA_DISABLE_JIT="1"),
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     counts = json.loads(run.stdout.strip().splitlines()[-1])
     assert 4 * 2 * 90 < counts["rk4"] < 4 * 2 * 200
     assert counts["filippov"] > 1.3 * counts["rk4"]  # two fields a robot at every stage, and the plan
-    refused = subprocess.run([sys.executable, "-m", "benchmarks.strong_peer"], cwd=ROOT, capture_output=True, text=True,
-                             env={k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"})
+    refused = subprocess.run(
+        [sys.executable, "-m", "benchmarks.strong_peer"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"},
+    )
     assert refused.returncode == 2 and "NUMBA_DISABLE_JIT=1" in refused.stderr
 
 
 @pytest.mark.slow
 def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     out, plot = tmp_path / "results.json", tmp_path / "scaling.png"
-    run = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--max-devices", "1", "--Bs", "2", "--T", "0.05",
-                          "--repeats", "1", "--out", str(out), "--plot", str(plot)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=1800)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "benchmarks",
+            "--quick",
+            "--max-devices",
+            "1",
+            "--Bs",
+            "2",
+            "--T",
+            "0.05",
+            "--repeats",
+            "1",
+            "--out",
+            str(out),
+            "--plot",
+            str(plot),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     result = json.load(open(out))
     assert {"jax", "cpu", "cores", "device_counts"} <= set(result["machine"])
@@ -115,7 +168,14 @@ def test_quick_benchmark_writes_the_documented_fields(tmp_path):
         assert r["steps_per_s"] > 0 and r["run_s"] > 0
     assert result["peer_flops"]["filippov"] > result["peer_flops"]["rk4"] > 0
     s = result["summary"]
-    assert {"coopjax_over_strong_peer", "fraction_of_peak", "strong_peer_steps_per_s", "targets",
-            "filippov_over_rk4_cost", "coopjax_over_lsoda_per_set", "compile_s"} <= set(s)
+    assert {
+        "coopjax_over_strong_peer",
+        "fraction_of_peak",
+        "strong_peer_steps_per_s",
+        "targets",
+        "filippov_over_rk4_cost",
+        "coopjax_over_lsoda_per_set",
+        "compile_s",
+    } <= set(s)
     assert set(s["coopjax_over_strong_peer"]) == {"filippov_float32", "filippov_float64", "rk4_float32", "rk4_float64"}
     assert plot.stat().st_size > 10_000

@@ -37,7 +37,9 @@ def test_a_second_run_loads_what_the_first_compiled(tmp_path):
     runs = []
     for _ in range(2):
         subprocess.run(command, env=env, check=True, capture_output=True)
-        runs.append(sorted(os.path.relpath(os.path.join(d, f), folder) for d, _, files in os.walk(folder) for f in files))
+        runs.append(
+            sorted(os.path.relpath(os.path.join(d, f), folder) for d, _, files in os.walk(folder) for f in files)
+        )
     assert runs[0], "nothing was cached"
     assert {os.path.dirname(f) for f in runs[0]} == {cache.machine_tag()}  # one subfolder, this machine's
     assert runs[1] == runs[0]

@@ -27,8 +27,9 @@ def test_simulate_writes_csv_and_plot(fresh_dir, capsys):
 
 
 def test_real_process_exit_code_and_no_traceback(fresh_dir):
-    run = subprocess.run([sys.executable, "-m", "coopjax.cli", "simulate", "--set", "M_b=-1"],
-                         capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "coopjax.cli", "simulate", "--set", "M_b=-1"], capture_output=True, text=True
+    )
     assert run.returncode == 2
     assert run.stderr.strip() == "coopjax: error: M_b is -1 kg: it must be positive (body mass)"
     assert os.listdir(fresh_dir) == []

@@ -35,10 +35,12 @@ def test_the_polish_finds_the_minimax_optimum_and_cma_es_samples_it():
     # later generations: they were injected.
     queries = evaluator.queries
     trials = [row for before, q in zip(queries, queries[1:]) if before.derivative == "jacobian" for row in q.thetas]
-    generations = [q.thetas for before, q in zip(queries, queries[1:])
-                   if q.derivative is None and before.derivative is None]  # a generation follows a generation or a trial
+    generations = [
+        q.thetas for before, q in zip(queries, queries[1:]) if q.derivative is None and before.derivative is None
+    ]  # a generation follows a generation or a trial
     led = sum(any(np.array_equal(g[0], t) for t in trials) for g in generations)
     assert len(trials) >= 12 and led >= 3
+
 
 def test_resume_replays_to_the_same_state(tmp_path):
     tuner = CMAESPolished(every=2, polish=2)

@@ -31,9 +31,13 @@ def hold_command(p, clock: Clock):
 
 
 HOLD = scenarios.Scenario(
-    name="hold", T=1.5, command=hold_command, windows={"grip": (0.5, 1.5), "lag": (1.0, 1.5)},
+    name="hold",
+    T=1.5,
+    command=hold_command,
+    windows={"grip": (0.5, 1.5), "lag": (1.0, 1.5)},
     description="grip, then hold still (a test scenario)",
-    parameters={"A_hold": params.Spec(0.1, "m/s", False, "finite", "hold scenario: grip amplitude")})
+    parameters={"A_hold": params.Spec(0.1, "m/s", False, "finite", "hold scenario: grip amplitude")},
+)
 
 
 # --- a metric on a signal no built-in metric uses: the body's largest speed ----------------------
@@ -43,8 +47,14 @@ def _speed_update(peak, obs, p, ctx):
     return jnp.maximum(peak, jnp.abs(obs.y[model.STATE_NAMES.index("v_o")]))
 
 
-BODY_SPEED = objectives.Metric("body_speed", "m/s", "largest |v_o| over the run", lambda b, d, ctx: jnp.zeros(tuple(b), d),
-                               _speed_update, lambda peak, ctx: peak)
+BODY_SPEED = objectives.Metric(
+    "body_speed",
+    "m/s",
+    "largest |v_o| over the run",
+    lambda b, d, ctx: jnp.zeros(tuple(b), d),
+    _speed_update,
+    lambda peak, ctx: peak,
+)
 
 
 # --- an integrator: Heun's method (second order), with its own stability function ---------------
@@ -145,12 +155,33 @@ def test_a_new_scenario_metric_and_integrator_run_through_simulate(registered):
 
 
 def test_they_run_through_a_sweep_and_the_command_line(registered, fresh_dir, capsys):
-    table = cj.sweep(cj.Config("hold", switch="smooth", integrator="heun", dt=5e-4), 4,
-                     vary={"A_hold": "uniform:0.05:0.1"})
+    table = cj.sweep(
+        cj.Config("hold", switch="smooth", integrator="heun", dt=5e-4), 4, vary={"A_hold": "uniform:0.05:0.1"}
+    )
     assert "body_speed" in table.columns and "A_hold" in table.columns and (table["status"] == "ok").all()
     assert sweeps.column_units()["body_speed"] == "m/s"
-    code = cli.main(["sweep", "--scenario", "hold", "--switch", "smooth", "--integrator", "heun", "--dt", "5e-4",
-                     "--n", "4", "--vary", "A_hold=uniform:0.05:0.1", "--devices", "1", "--quiet", "--out", "s.csv"])
+    code = cli.main(
+        [
+            "sweep",
+            "--scenario",
+            "hold",
+            "--switch",
+            "smooth",
+            "--integrator",
+            "heun",
+            "--dt",
+            "5e-4",
+            "--n",
+            "4",
+            "--vary",
+            "A_hold=uniform:0.05:0.1",
+            "--devices",
+            "1",
+            "--quiet",
+            "--out",
+            "s.csv",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     header = open("s.csv").readline().strip().split(",")
     assert "body_speed" in header and "A_hold" in header
@@ -189,8 +220,22 @@ def test_an_incomplete_extension_is_refused_when_it_is_registered():
 
 
 def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_dir, capsys):
-    small = ["--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
-             "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", "--quiet"]
+    small = [
+        "--starts",
+        "2",
+        "--train-masses",
+        "2",
+        "--held-out",
+        "2",
+        "--params",
+        "gains",
+        "--masses",
+        "loguniform:0.8:4.5",
+        "--margin",
+        "0",
+        "--fixed-masses",
+        "--quiet",
+    ]
     code = cli.main(["tune", "--method", "best start", "--pick", "1", *small, "--out", "best.json"])
     out, err = capsys.readouterr()
     assert code == 0, out + err
@@ -213,8 +258,16 @@ def test_a_new_tuner_runs_through_the_race(registered):
     starts = np.log(np.asarray([[0.054, 0.078, 2.93, 1224.0], [0.5, 0.1, 1.25, 600.0]]))
     # A value-only reference keeps the test to value compiles; the gradient tuner races in test_tuning_cli.
     tuners = {"random search": RandomSearch(block=2, generations=1), "best start": BestStart()}
-    result = race.run(tuners, "random search", problem, cj.make_params(), lambda seed: starts, seeds=[0], log=lambda s: None,
-                      judge_dt=2e-3)
+    result = race.run(
+        tuners,
+        "random search",
+        problem,
+        cj.make_params(),
+        lambda seed: starts,
+        seeds=[0],
+        log=lambda s: None,
+        judge_dt=2e-3,
+    )
     row = result["per_seed"][0]
     assert row["evaluations"]["best start"] == 2 and row["chosen"]["best start"] is not None
     assert result["tuners"] == ["random search", "best start"]

@@ -23,10 +23,14 @@ def hard_terms(theta, dt, M_b=HARD_MASS, checkpoint=True):
     return jnp.stack([getattr(m, k) for k in TERMS], axis=0)
 
 
-@pytest.mark.parametrize("dt, modes, checkpoint", [
-    pytest.param(1e-3, ("forward", "reverse"), True, marks=pytest.mark.slow),
-    pytest.param(2e-3, ("forward", "reverse"), "nested", marks=pytest.mark.slow),
-    (2e-3, ("reverse",), True)])
+@pytest.mark.parametrize(
+    "dt, modes, checkpoint",
+    [
+        pytest.param(1e-3, ("forward", "reverse"), True, marks=pytest.mark.slow),
+        pytest.param(2e-3, ("forward", "reverse"), "nested", marks=pytest.mark.slow),
+        (2e-3, ("reverse",), True),
+    ],
+)
 def test_hard_model_gradients_match_finite_differences_in_both_modes(dt, modes, checkpoint):
     """d(slip, crush, lag, impact)/d(K_GP, K_GI, tau, G_e) of the hard model, filippov, against
     central differences of the same grid: AD differentiates the step it runs.

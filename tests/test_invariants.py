@@ -15,7 +15,11 @@ def test_total_momentum_is_conserved_over_carry(switch, integrator):
     y = np.asarray(sol.trajectory.y)  # (n, 20)
     st = {name: y[:, i] for i, name in enumerate(model.STATE_NAMES)}
     parts = [
-        7.0 * st["v_v_L"], 10.0 * st["v_v_R"], 1.0 * st["v_r_L"], 1.5 * st["v_r_R"], 2.5 * st["v_o"],
+        7.0 * st["v_v_L"],
+        10.0 * st["v_v_R"],
+        1.0 * st["v_r_L"],
+        1.5 * st["v_r_R"],
+        2.5 * st["v_o"],
     ]
     total = np.sum(parts, axis=0)
     scale = np.max(np.sum(np.abs(parts), axis=0))
@@ -28,13 +32,17 @@ def test_total_momentum_is_conserved_over_carry(switch, integrator):
 # Batches and single runs compile to different XLA programs, so they round differently. Where the
 # integration is converged those differences stay at round-off; plain RK4 on the hard carry is not
 # (it chatters on F = F_lim) and the loop amplifies them. See docs/model.md, "Step size".
-@pytest.mark.parametrize("scenario, switch, dt", [("carry", "hard", 1e-3),
-                                                  pytest.param("paper", "hard", 1e-3, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "scenario, switch, dt", [("carry", "hard", 1e-3), pytest.param("paper", "hard", 1e-3, marks=pytest.mark.slow)]
+)
 def test_a_batch_of_eight_equals_its_single_runs(scenario, switch, dt):
     rng = np.random.default_rng(0)
     values = dict(
-        M_b=rng.uniform(0.5, 5, 8), K_GP=rng.uniform(0.4, 0.6, 8), K_GI=rng.uniform(0.08, 0.12, 8),
-        tau=rng.uniform(1.0, 1.5, 8), G_e=rng.uniform(500, 700, 8),
+        M_b=rng.uniform(0.5, 5, 8),
+        K_GP=rng.uniform(0.4, 0.6, 8),
+        K_GI=rng.uniform(0.08, 0.12, 8),
+        tau=rng.uniform(1.0, 1.5, 8),
+        G_e=rng.uniform(500, 700, 8),
     )
     singles = range(8) if scenario == "paper" else (0, 3, 6)  # in CI, three of the eight against the batch
     run = lambda params: cj.simulate(params, scenario, switch=switch, dt=dt, every=int(0.05 / dt))
@@ -43,10 +51,12 @@ def test_a_batch_of_eight_equals_its_single_runs(scenario, switch, dt):
         single = run(cj.make_params(**{k: v[b] for k, v in values.items()}))
         for name, got in batch.metrics._asdict().items():
             # atol: slip is a sum of squared shortfalls, ~1e-28 N^2 where the grip slides on F_lim.
-            np.testing.assert_allclose(np.asarray(got)[b], np.asarray(getattr(single.metrics, name)),
-                                       rtol=1e-9, atol=1e-20, err_msg=name)
-        np.testing.assert_allclose(np.asarray(batch.trajectory.aux.F)[..., b],
-                                   np.asarray(single.trajectory.aux.F), rtol=0, atol=1e-9)
+            np.testing.assert_allclose(
+                np.asarray(got)[b], np.asarray(getattr(single.metrics, name)), rtol=1e-9, atol=1e-20, err_msg=name
+            )
+        np.testing.assert_allclose(
+            np.asarray(batch.trajectory.aux.F)[..., b], np.asarray(single.trajectory.aux.F), rtol=0, atol=1e-9
+        )
 
 
 # filippov is slow here: test_sliding.py and test_sweeps.py flag its blown-up samples in CI.
@@ -65,5 +75,6 @@ def test_a_diverging_sample_is_flagged_and_leaves_its_neighbours_alone(integrato
     for b in (0, 2):
         single = cj.simulate(cj.make_params(K_GP=K_GP[b]), scenario, integrator=integrator)
         for name in ("min_grip", "peak_grip", "slip", "crush", "rms_lag"):
-            assert float(getattr(batch.metrics, name)[b]) == pytest.approx(float(getattr(single.metrics, name)), rel=1e-12,
-                                                                            nan_ok=True)
+            assert float(getattr(batch.metrics, name)[b]) == pytest.approx(
+                float(getattr(single.metrics, name)), rel=1e-12, nan_ok=True
+            )

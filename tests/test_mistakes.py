@@ -33,8 +33,13 @@ CASES = [
     ("simulate-plot-folder", {"f.png": None}, ["simulate", "--plot", "f.png"], {}, "is a folder"),
     ("simulate-plot-empty", {}, ["simulate", "--plot", ""], {}, "give a file name"),
     ("simulate-plot-extension", {}, ["simulate", "--plot", "f.txt"], {}, "must end in one of"),
-    ("plot-sweep-out-folder", {"t.csv": SWEEP_TABLE, "p.png": None}, ["plot-sweep", "t.csv", "--out", "p.png"], {},
-     "is a folder"),
+    (
+        "plot-sweep-out-folder",
+        {"t.csv": SWEEP_TABLE, "p.png": None},
+        ["plot-sweep", "t.csv", "--out", "p.png"],
+        {},
+        "is a folder",
+    ),
     ("tune-history-folder", {"t_history.png": None}, ["tune", "--steps", "1", "--out", "t.json"], {}, "is a folder"),
     ("tune-traces-folder", {"t_traces.png": None}, ["tune", "--steps", "1", "--out", "t.json"], {}, "is a folder"),
     ("tune-out-extension", {}, ["tune", "--out", "t.txt"], {}, "must end in one of"),
@@ -51,10 +56,21 @@ CASES = [
     ("from-unknown-column", {"t.csv": "a,b\n1,2\n"}, ["sweep", *SMALL, "--from", "t.csv"], {}, "unknown parameter 'a'"),
     ("from-ragged", {"t.csv": "M_b,K_GP\n1,2\n3\n"}, ["sweep", *SMALL, "--from", "t.csv"], {}, "line 3"),
     ("from-not-numbers", {"t.csv": "M_b\n1\nheavy\n"}, ["sweep", *SMALL, "--from", "t.csv"], {}, "not numbers"),
-    ("from-results-only", {"t.csv": "sample,min_grip\n0,1\n"}, ["sweep", *SMALL, "--from", "t.csv"], {},
-     "no parameter columns"),
+    (
+        "from-results-only",
+        {"t.csv": "sample,min_grip\n0,1\n"},
+        ["sweep", *SMALL, "--from", "t.csv"],
+        {},
+        "no parameter columns",
+    ),
     ("from-negative-mass", {"t.csv": "M_b\n1\n-2\n"}, ["sweep", *SMALL, "--from", "t.csv"], {}, "at sample 1"),
-    ("from-binary", {"t.parquet": "not parquet"}, ["sweep", *SMALL, "--from", "t.parquet"], {}, "not a readable Parquet"),
+    (
+        "from-binary",
+        {"t.parquet": "not parquet"},
+        ["sweep", *SMALL, "--from", "t.parquet"],
+        {},
+        "not a readable Parquet",
+    ),
     ("plot-sweep-empty", {"t.csv": ""}, ["plot-sweep", "t.csv"], {}, "is empty"),
     ("plot-sweep-folder", {"t.csv": None}, ["plot-sweep", "t.csv"], {}, "is a folder"),
     ("plot-sweep-missing", {}, ["plot-sweep", "t.csv"], {}, "no such file"),
@@ -66,8 +82,13 @@ CASES = [
     ("sweep-tiny-step", {}, ["sweep", "--devices", "1", *VARY, "--dt", "1e-12"], {}, "at most 2,147,483,647"),
     ("simulate-huge-steps", {}, ["simulate", "--T", "1e7", "--dt", "1e-6"], {}, "32-bit step counter"),
     ("simulate-huge-every", {}, ["simulate", "--every", "1000000000000"], {}, "more than the run's 3000 steps"),
-    ("sweep-huge-n", {}, ["sweep", "--devices", "1", "--vary", "M_b=uniform:1:2", "--n", "1000000000000"], {},
-     "more than half of this machine's memory"),
+    (
+        "sweep-huge-n",
+        {},
+        ["sweep", "--devices", "1", "--vary", "M_b=uniform:1:2", "--n", "1000000000000"],
+        {},
+        "more than half of this machine's memory",
+    ),
     # 9. Unstable parameters blame the parameters, not the step.
     ("simulate-negative-force-limit", {}, ["simulate", "--set", "F_lim=-5"], {}, "make the loop unstable"),
     ("simulate-negative-gain", {}, ["simulate", "--set", "K_GP=-5"], {}, "make the loop unstable"),
@@ -80,8 +101,13 @@ CASES = [
     ("simulate-repeated-set", {}, ["simulate", "--set", "G_e=1", "--set", "G_e=2"], {}, "more than once"),
     ("sweep-env-processes", {}, ["sweep", *SMALL, *VARY], {"COOPJAX_NUM_PROCESSES": "two"}, "not a whole number"),
     ("sweep-distributed-partial", {}, ["sweep", *SMALL, *VARY, "--num-processes", "2"], {}, "go together"),
-    ("sweep-process-id-range", {}, ["sweep", *SMALL, *VARY, "--coordinator", "h:1", "--num-processes", "2",
-                                    "--process-id", "2"], {}, "between 0 and"),
+    (
+        "sweep-process-id-range",
+        {},
+        ["sweep", *SMALL, *VARY, "--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
+        {},
+        "between 0 and",
+    ),
     ("tune-devices-zero", {}, ["tune", "--devices", "0"], {}, "--devices is 0"),
     ("tune-steps-zero", {}, ["tune", "--steps", "0"], {}, "at least 1"),
     ("tune-repeated-set", {}, ["tune", "--set", "G_e=1", "--set", "G_e=2"], {}, "given more than once"),
@@ -104,8 +130,13 @@ CASES = [
     ("simulate-out-nowhere", {}, ["simulate", "--out", "nowhere/run.csv"], {}, "does not exist"),
     ("simulate-switch", {}, ["simulate", "--switch", "soft"], {}, "unknown switch 'soft'"),
     ("simulate-integrator", {}, ["simulate", "--integrator", "euler"], {}, "unknown integrator 'euler'"),
-    ("simulate-smooth-filippov", {}, ["simulate", "--switch", "smooth", "--integrator", "filippov"], {},
-     "the smooth switch runs with rk4"),
+    (
+        "simulate-smooth-filippov",
+        {},
+        ["simulate", "--switch", "smooth", "--integrator", "filippov"],
+        {},
+        "the smooth switch runs with rk4",
+    ),
     ("simulate-gamma-min", {}, ["simulate", "--gamma-min", "nan"], {}, "--gamma-min is nan"),
     ("simulate-force-bound", {}, ["simulate", "--force-bound", "0"], {}, "--force-bound is 0 N"),
     ("simulate-plot-memory", {}, ["simulate", "--T", "1e6", "--dt", "1e-3", "--plot", "f.png"], {}, "drop --plot"),
@@ -122,26 +153,64 @@ CASES = [
     ("vary-no-n", {}, ["sweep", *SMALL, "--vary", "K_GP=uniform:1:2"], {}, "say how many samples"),
     ("vary-grid-n", {}, ["sweep", *SMALL, "--vary", "K_GP=grid:1:2:3", "--n", "5"], {}, "disagrees"),
     ("sweep-chunk-zero", {}, ["sweep", *SMALL, *VARY, "--chunk", "0"], {}, "at least 1"),
-    ("vary-normal-negative", {}, ["sweep", *SMALL, "--vary", "M_b=normal:1:2", "--n", "50"], {},
-     "--vary M_b=normal:1:2 gives M_b = -"),
+    (
+        "vary-normal-negative",
+        {},
+        ["sweep", *SMALL, "--vary", "M_b=normal:1:2", "--n", "50"],
+        {},
+        "--vary M_b=normal:1:2 gives M_b = -",
+    ),
     ("sweep-float32-overflow", {}, ["sweep", *SMALL, *VARY, "--set", "K_g=1e40"], {}, "does not fit in float32"),
     ("sweep-scenario", {}, ["sweep", "--scenario", "orbit", *VARY], {}, "unknown scenario 'orbit'"),
-    ("from-unreadable", {"t.csv": "M_b\n1\n"}, ["sweep", *SMALL, "--from", "t.csv"], {"chmod": "t.csv"}, "not readable"),
+    (
+        "from-unreadable",
+        {"t.csv": "M_b\n1\n"},
+        ["sweep", *SMALL, "--from", "t.csv"],
+        {"chmod": "t.csv"},
+        "not readable",
+    ),
     ("plot-sweep-unreadable", {"t.csv": SWEEP_TABLE}, ["plot-sweep", "t.csv"], {"chmod": "t.csv"}, "not readable"),
-    ("sweep-parts-unreadable", {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
-     ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"], {"chmod": "s.csv.parts/manifest.json"}, "not readable"),
-    ("sweep-parts-read-only", {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
-     ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"], {"chmod": "s.csv.parts"}, "is not writable"),
+    (
+        "sweep-parts-unreadable",
+        {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
+        ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"],
+        {"chmod": "s.csv.parts/manifest.json"},
+        "not readable",
+    ),
+    (
+        "sweep-parts-read-only",
+        {"s.csv.parts": None, "s.csv.parts/manifest.json": "{}"},
+        ["sweep", *SMALL, *VARY, "--out", "s.csv", "--resume"],
+        {"chmod": "s.csv.parts"},
+        "is not writable",
+    ),
     # tune
-    ("tune-mode", {}, ["tune", "--method", "gradient", "--mode", "sideways"], {}, "argument --mode: invalid choice: 'sideways'"),
+    (
+        "tune-mode",
+        {},
+        ["tune", "--method", "gradient", "--mode", "sideways"],
+        {},
+        "argument --mode: invalid choice: 'sideways'",
+    ),
     ("tune-method", {}, ["tune", "--method", "newton"], {}, "argument --method: invalid choice: 'newton'"),
     ("tune-flag-of-another-method", {}, ["tune", "--lr", "0.1"], {}, "--lr sets the gradient tuner"),
-    ("tune-screen-flag-of-another-method", {}, ["tune", "--method", "gradient", "--local", "4"], {}, "--local sets the screen-SLP tuner"),
+    (
+        "tune-screen-flag-of-another-method",
+        {},
+        ["tune", "--method", "gradient", "--local", "4"],
+        {},
+        "--local sets the screen-SLP tuner",
+    ),
     ("tune-screen-negative", {}, ["tune", "--screen", "-1"], {}, "--screen is -1"),
     ("tune-local-zero", {}, ["tune", "--local", "0"], {}, "--local is 0"),
     ("tune-search", {}, ["tune", "--search", "grid"], {}, "argument --search: invalid choice: 'grid'"),
-    ("tune-search-of-another-method", {}, ["tune", "--method", "gradient", "--search", "sobol"], {},
-     "--search sets the screen-SLP tuner"),
+    (
+        "tune-search-of-another-method",
+        {},
+        ["tune", "--method", "gradient", "--search", "sobol"],
+        {},
+        "--search sets the screen-SLP tuner",
+    ),
     ("tune-masses-kind", {}, ["tune", "--masses", "normal:1:2"], {}, "--masses expects"),
     ("tune-masses-order", {}, ["tune", "--masses", "loguniform:5:0.5"], {}, "0 < LOW < HIGH"),
     ("tune-params-unknown", {}, ["tune", "--params", "K_XX"], {}, "unknown parameter 'K_XX'"),
@@ -177,7 +246,6 @@ CASES = [
 ]
 
 
-
 def snapshot(folder):
     out = {}
     for root, dirs, files in os.walk(folder):
@@ -192,12 +260,15 @@ def deny(monkeypatch, path):
     os.chmod(path, 0)
     if os.geteuid() == 0:
         real, target = os.access, os.path.abspath(path)
-        monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if os.path.abspath(p) == target else real(p, mode, **kw))
+        monkeypatch.setattr(
+            os, "access", lambda p, mode, **kw: False if os.path.abspath(p) == target else real(p, mode, **kw)
+        )
 
 
 @pytest.mark.parametrize("setup, argv, env, fragment", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
-def test_a_mistake_is_one_line_exit_2_and_leaves_the_folder_as_it_was(fresh_dir, capsys, monkeypatch, setup, argv,
-                                                                       env, fragment):
+def test_a_mistake_is_one_line_exit_2_and_leaves_the_folder_as_it_was(
+    fresh_dir, capsys, monkeypatch, setup, argv, env, fragment
+):
     for name, text in setup.items():
         os.mkdir(name) if text is None else open(name, "w").write(text)
     for key, value in env.items():
@@ -251,8 +322,11 @@ API_CASES = [
     ("step-beyond-limit", lambda: cj.simulate(cj.make_params(K_GP=100.0), dt=1e-3), "stable only for dt <="),
     ("unstable", lambda: cj.simulate(cj.make_params(K_GP=-5.0), "paper"), "make the loop unstable"),
     ("steps", lambda: cj.simulate(cj.make_params(), "paper", T=1e7, dt=1e-6), "32-bit step counter"),
-    ("state-name", lambda: cj.simulate(cj.make_params(), "paper", T=0.01, every=1).trajectory.state("x_q"),
-     "unknown state 'x_q'"),
+    (
+        "state-name",
+        lambda: cj.simulate(cj.make_params(), "paper", T=0.01, every=1).trajectory.state("x_q"),
+        "unknown state 'x_q'",
+    ),
     ("sweep-nothing-varies", lambda: cj.sweep("paper", 8, T=0.05), "nothing varies"),
     ("sweep-vary-type", lambda: cj.sweep("paper", 8, vary={"M_b": 2.0}), "expected a distribution"),
     ("sweep-vary-dict", lambda: cj.sweep("paper", 8, vary=["M_b"]), "vary must be a dict"),
@@ -288,14 +362,23 @@ def test_a_stale_temporary_file_from_a_killed_write_is_gone_after_the_next_succe
 @pytest.mark.slow
 def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_path):
     """A real kill -9 while the table is being written (a hook sleeps inside the write), then --resume."""
-    args = [sys.executable, "-c",
-            "import time, coopjax.io as io, sys\n"
-            "def slow(path, columns):\n"
-            "    with io.atomic_path(path) as tmp:\n"
-            "        open(tmp, 'w').write('partial'); print('writing', flush=True); time.sleep(60)\n"
-            "import coopjax.cli.sweep as s; s.write_table = slow\n"
-            "from coopjax.cli import main; sys.exit(main(sys.argv[1:]))",
-            "sweep", *SMALL, *VARY, "--chunk", "2", "--out", "s.csv"]
+    args = [
+        sys.executable,
+        "-c",
+        "import time, coopjax.io as io, sys\n"
+        "def slow(path, columns):\n"
+        "    with io.atomic_path(path) as tmp:\n"
+        "        open(tmp, 'w').write('partial'); print('writing', flush=True); time.sleep(60)\n"
+        "import coopjax.cli.sweep as s; s.write_table = slow\n"
+        "from coopjax.cli import main; sys.exit(main(sys.argv[1:]))",
+        "sweep",
+        *SMALL,
+        *VARY,
+        "--chunk",
+        "2",
+        "--out",
+        "s.csv",
+    ]
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in proc.stdout:
         if line.startswith("writing"):
@@ -303,8 +386,12 @@ def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_
     proc.kill()
     proc.wait()
     assert any(n.startswith(".s.csv.tmp-") for n in os.listdir(tmp_path))
-    done = subprocess.run([sys.executable, "-m", "coopjax.cli", "sweep", *SMALL, *VARY, "--chunk", "2", "--out", "s.csv",
-                           "--resume"], cwd=tmp_path, capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, "-m", "coopjax.cli", "sweep", *SMALL, *VARY, "--chunk", "2", "--out", "s.csv", "--resume"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
     assert sorted(os.listdir(tmp_path)) == ["s.csv"]
 
@@ -312,7 +399,15 @@ def test_kill_9_during_the_final_write_then_resume_leaves_no_temporary_file(tmp_
 def test_csv_and_parquet_of_one_sweep_are_equal(fresh_dir):
     pd = pytest.importorskip("pandas")
     pytest.importorskip("pyarrow")
-    spec = sweeps.make_spec("paper", n=6, vary={"K_GP": "choice:0.5,30,-3", "M_b": "loguniform:0.5:5"}, T=0.3, seed=2, integrator="rk4", dt=2e-3)
+    spec = sweeps.make_spec(
+        "paper",
+        n=6,
+        vary={"K_GP": "choice:0.5,30,-3", "M_b": "loguniform:0.5:5"},
+        T=0.3,
+        seed=2,
+        integrator="rk4",
+        dt=2e-3,
+    )
     table = sweeps.run(spec, chunk=6)
     assert len(set(table["status"])) >= 2  # strings and numbers both round-trip
     io.write_table("s.csv", table)
@@ -333,7 +428,9 @@ def test_blown_up_and_unstable_samples_are_flagged_and_their_neighbours_stay_exa
     """Paper scenario at dt = 3 ms: K_GP = 10 puts the step beyond the linearised limit (its run stays
     finite but means nothing), K_GP = 100 does too and blows up, K_GP = -3 makes the loop itself
     unstable. Table 1 (K_GP = 0.5) is fine, and its rows equal a single run."""
-    spec = sweeps.make_spec("paper", n=8, vary={"K_GP": "choice:0.5,10,-3,100"}, T=1.0, seed=0, integrator="rk4", dt=3e-3)
+    spec = sweeps.make_spec(
+        "paper", n=8, vary={"K_GP": "choice:0.5,10,-3,100"}, T=1.0, seed=0, integrator="rk4", dt=3e-3
+    )
     table = sweeps.run(spec, chunk=8)
     expect = {0.5: "ok", 10.0: "step_beyond_limit", -3.0: "unstable_loop", 100.0: "step_beyond_limit"}
     for k, status in zip(table["K_GP"], table["status"]):

@@ -9,15 +9,24 @@ import reference_model as ref
 
 
 # The carry case takes 80 000 steps (13 s); the paper case and the blend test below keep Radau in CI.
-@pytest.mark.parametrize("scenario, T, dt", [("paper", 3.0, 1e-4), pytest.param("carry", 4.0, 5e-5, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "scenario, T, dt", [("paper", 3.0, 1e-4), pytest.param("carry", 4.0, 5e-5, marks=pytest.mark.slow)]
+)
 def test_smooth_model_agrees_with_scipy_radau(scenario, T, dt):
     every = int(round(0.01 / dt))
     sol = cj.simulate(cj.make_params(), scenario, switch="smooth", dt=dt, every=every)
     t = np.asarray(sol.trajectory.t)
     ours = np.asarray(sol.trajectory.aux.F)  # (n, 2)
 
-    reference = solve_ivp(lambda t, y: ref.rhs(t, y, scenario)[0], (0.0, T), np.zeros(20),
-                          method="Radau", t_eval=t, rtol=1e-10, atol=1e-12)
+    reference = solve_ivp(
+        lambda t, y: ref.rhs(t, y, scenario)[0],
+        (0.0, T),
+        np.zeros(20),
+        method="Radau",
+        t_eval=t,
+        rtol=1e-10,
+        atol=1e-12,
+    )
     assert reference.success, reference.message
     theirs = np.array([ref.rhs(tk, yk, scenario)[1] for tk, yk in zip(reference.t, reference.y.T)])
     error = np.max(np.abs(ours - theirs)) / np.max(np.abs(theirs))
@@ -36,8 +45,15 @@ def test_blend_model_agrees_with_scipy_radau():
     t = np.asarray(sol.trajectory.t)
     ours = np.asarray(sol.trajectory.aux.F)
     p = {**ref.TABLE1, **gains}
-    reference = solve_ivp(lambda t, y: ref.rhs(t, y, "carry", p, "blend")[0], (0.0, T), np.zeros(20),
-                          method="Radau", t_eval=t, rtol=1e-10, atol=1e-12)
+    reference = solve_ivp(
+        lambda t, y: ref.rhs(t, y, "carry", p, "blend")[0],
+        (0.0, T),
+        np.zeros(20),
+        method="Radau",
+        t_eval=t,
+        rtol=1e-10,
+        atol=1e-12,
+    )
     assert reference.success, reference.message
     theirs = np.array([ref.rhs(tk, yk, "carry", p, "blend")[1] for tk, yk in zip(reference.t, reference.y.T)])
     assert theirs.max() > 20.0  # the carry really loads the pushing gripper

@@ -27,10 +27,42 @@ from coopjax import cli, io
 
 COMMANDS = {
     "simulate": ["simulate", "--T", "0.5", "--plot", "fig.png"],
-    "sweep": ["sweep", "--scenario", "paper", "--T", "0.3", "--n", "48", "--chunk", "4", "--vary", "M_b=uniform:1:2",
-              "--devices", "1", "--quiet", "--out", "s.csv"],
-    "tune": ["tune", "--steps", "3", "--screen", "8", "--local", "2", "--starts", "2", "--train-masses", "2", "--held-out",
-             "2", "--params", "gains", "--quiet"],
+    "sweep": [
+        "sweep",
+        "--scenario",
+        "paper",
+        "--T",
+        "0.3",
+        "--n",
+        "48",
+        "--chunk",
+        "4",
+        "--vary",
+        "M_b=uniform:1:2",
+        "--devices",
+        "1",
+        "--quiet",
+        "--out",
+        "s.csv",
+    ],
+    "tune": [
+        "tune",
+        "--steps",
+        "3",
+        "--screen",
+        "8",
+        "--local",
+        "2",
+        "--starts",
+        "2",
+        "--train-masses",
+        "2",
+        "--held-out",
+        "2",
+        "--params",
+        "gains",
+        "--quiet",
+    ],
     "analyze": ["analyze", "--alpha", "1"],
 }
 BAR = "it/s]"  # tqdm's progress lines
@@ -43,8 +75,14 @@ def _restore_sigint():  # pytest-xdist's workers ignore SIGINT, and a child woul
 def interrupt(command, delay, folder):
     """Start `coopjax COMMAND` in `folder`, send SIGINT after `delay` s; returns (code, stderr, seconds to exit)."""
     os.makedirs(folder)
-    proc = subprocess.Popen([sys.executable, "-m", "coopjax.cli", *COMMANDS[command]], cwd=folder,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_restore_sigint)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "coopjax.cli", *COMMANDS[command]],
+        cwd=folder,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_restore_sigint,
+    )
     time.sleep(delay)
     sent = time.perf_counter()
     proc.send_signal(signal.SIGINT)
@@ -73,7 +111,11 @@ def check_trial(command, folder, code, err, took):
         return "not started" if not files else "finished"
     assert code == 130, (code, err[-2000:])
     assert took < 10, took  # the watcher acts at once, even inside XLA
-    assert len(lines) == 1 and lines[0].startswith("coopjax: interrupted; ") and "Traceback" not in err, (command, took, err[-2000:])
+    assert len(lines) == 1 and lines[0].startswith("coopjax: interrupted; ") and "Traceback" not in err, (
+        command,
+        took,
+        err[-2000:],
+    )
     said = lines[0]
     outputs = [n for n in files if not n.endswith(".parts") and not n.endswith(".ckpt")]
     if "nothing was written" in said or "nothing was kept" in said:
@@ -139,8 +181,24 @@ def test_a_full_disk_leaves_no_partial_output(fresh_dir, capsys, monkeypatch):
 
 
 def test_a_full_disk_in_a_sweep_keeps_the_finished_chunks_and_resume_finishes_it(fresh_dir, capsys, monkeypatch):
-    args = ["sweep", "--scenario", "paper", "--T", "0.2", "--n", "12", "--chunk", "4", "--vary", "M_b=uniform:1:2",
-            "--devices", "1", "--quiet", "--out", "s.csv"]
+    args = [
+        "sweep",
+        "--scenario",
+        "paper",
+        "--T",
+        "0.2",
+        "--n",
+        "12",
+        "--chunk",
+        "4",
+        "--vary",
+        "M_b=uniform:1:2",
+        "--devices",
+        "1",
+        "--quiet",
+        "--out",
+        "s.csv",
+    ]
     real, calls = np.save, []
 
     def fills_up(f, data, *a, **k):
@@ -172,9 +230,27 @@ def test_a_real_full_disk(tmp_path):
     if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(disk)], capture_output=True).returncode:
         pytest.skip("cannot mount a tmpfs here")
     try:
-        for args in (["simulate", "--T", "4", "--scenario", "carry", "--every", "1"],
-                     ["sweep", "--scenario", "paper", "--T", "0.1", "--n", "2000", "--chunk", "500", "--vary",
-                      "M_b=uniform:1:2", "--devices", "1", "--quiet", "--out", "s.csv"]):
+        for args in (
+            ["simulate", "--T", "4", "--scenario", "carry", "--every", "1"],
+            [
+                "sweep",
+                "--scenario",
+                "paper",
+                "--T",
+                "0.1",
+                "--n",
+                "2000",
+                "--chunk",
+                "500",
+                "--vary",
+                "M_b=uniform:1:2",
+                "--devices",
+                "1",
+                "--quiet",
+                "--out",
+                "s.csv",
+            ],
+        ):
             run = subprocess.run([sys.executable, "-m", "coopjax.cli", *args], cwd=disk, capture_output=True, text=True)
             assert run.returncode == 1 and "no space left on device" in run.stderr, run.stderr[-2000:]
             assert "Traceback" not in run.stderr
@@ -199,8 +275,25 @@ def test_tables_as_spreadsheets_write_them_are_read(fresh_dir):
     pd.DataFrame({"M_b": np.array([1, 2, 3], np.int64)}).to_parquet("ints.parquet")
     table = io.read_table("ints.parquet")
     assert table["M_b"].dtype == np.float64 and table["M_b"].tolist() == [1.0, 2.0, 3.0]
-    assert cli.main(["sweep", "--scenario", "paper", "--T", "0.05", "--from", "ints.parquet", "--devices", "1", "--quiet",
-                     "--out", "s.csv"]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                "--scenario",
+                "paper",
+                "--T",
+                "0.05",
+                "--from",
+                "ints.parquet",
+                "--devices",
+                "1",
+                "--quiet",
+                "--out",
+                "s.csv",
+            ]
+        )
+        == 0
+    )
 
 
 def test_a_per_robot_name_wins_over_the_shared_one_in_any_order(fresh_dir):
@@ -208,8 +301,21 @@ def test_a_per_robot_name_wins_over_the_shared_one_in_any_order(fresh_dir):
     b = cj.make_params(K_GP=1.0, K_GP_L=0.3)
     assert np.asarray(a.K_GP).tolist() == np.asarray(b.K_GP).tolist() == [0.3, 1.0]
     # In a sweep, a fixed per-robot value holds against a varied shared name.
-    base = ["sweep", "--scenario", "paper", "--T", "0.1", "--n", "4", "--vary", "K_GP=uniform:0.2:1", "--devices", "1",
-            "--quiet", "--x64"]
+    base = [
+        "sweep",
+        "--scenario",
+        "paper",
+        "--T",
+        "0.1",
+        "--n",
+        "4",
+        "--vary",
+        "K_GP=uniform:0.2:1",
+        "--devices",
+        "1",
+        "--quiet",
+        "--x64",
+    ]
     assert cli.main(base + ["--out", "plain.csv"]) == 0
     assert cli.main(base + ["--set", "K_GP_L=5", "--out", "fixed.csv"]) == 0
     plain, fixed = io.read_table("plain.csv"), io.read_table("fixed.csv")
@@ -219,8 +325,9 @@ def test_a_per_robot_name_wins_over_the_shared_one_in_any_order(fresh_dir):
 
 
 def test_plot_sweep_draws_a_table_whose_metric_is_nan_everywhere(fresh_dir, capsys):
-    pd.DataFrame({"sample": [0, 1], "M_b": [1.0, 2.0], "min_grip": [np.nan, np.nan], "finite": [1, 1],
-                  "status": ["ok", "ok"]}).to_csv("t.csv", index=False)
+    pd.DataFrame(
+        {"sample": [0, 1], "M_b": [1.0, 2.0], "min_grip": [np.nan, np.nan], "finite": [1, 1], "status": ["ok", "ok"]}
+    ).to_csv("t.csv", index=False)
     assert cli.main(["plot-sweep", "t.csv", "--out", "p.png"]) == 0, capsys.readouterr().err
     assert os.path.getsize("p.png") > 10_000
 

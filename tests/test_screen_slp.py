@@ -22,8 +22,9 @@ CB2_MIN, CB2_AT = 1.9522245, np.array([1.1390383, 0.8995599])
 def cb2(x):
     x1, x2 = x
     values = np.array([x1**2 + x2**4, (2 - x1) ** 2 + (2 - x2) ** 2, 2 * math.exp(x2 - x1)])
-    jac = np.array([[2 * x1, 4 * x2**3], [-2 * (2 - x1), -2 * (2 - x2)],
-                    [-2 * math.exp(x2 - x1), 2 * math.exp(x2 - x1)]])
+    jac = np.array(
+        [[2 * x1, 4 * x2**3], [-2 * (2 - x1), -2 * (2 - x2)], [-2 * math.exp(x2 - x1), 2 * math.exp(x2 - x1)]]
+    )
     return values, jac
 
 
@@ -55,10 +56,24 @@ class Analytic:
         zeros = np.zeros((C, M))
         jac = None
         if query.derivative == "jacobian":
-            jac = {"peak": J_peak, "rms_lag": np.zeros_like(J_peak), "c": np.zeros_like(J_peak), "min_swi": J_swi,
-                   "f": J_peak[:, 0]}
-        return Evaluation(f=peak.max(1), c=zeros, peak=peak, rms_lag=zeros, min_grip=np.full((C, M), 10.0), valid=finite,
-                          holds=finite & (swi > 0).all(1), jacobian=jac, min_swi=swi)
+            jac = {
+                "peak": J_peak,
+                "rms_lag": np.zeros_like(J_peak),
+                "c": np.zeros_like(J_peak),
+                "min_swi": J_swi,
+                "f": J_peak[:, 0],
+            }
+        return Evaluation(
+            f=peak.max(1),
+            c=zeros,
+            peak=peak,
+            rms_lag=zeros,
+            min_grip=np.full((C, M), 10.0),
+            valid=finite,
+            holds=finite & (swi > 0).all(1),
+            jacobian=jac,
+            min_swi=swi,
+        )
 
 
 PROBLEM = Problem(names=("K_GP", "K_GI"), n_masses=3, w_lag=1.0)
@@ -78,9 +93,16 @@ def test_the_local_solve_finds_the_minimax_optimum_where_three_pieces_are_active
 def test_the_grip_margin_is_kept_exactly_as_an_independent_solver_keeps_it():
     """With min_swi = x1 - 1.4 and a margin of 0.1, x1 >= 1.5: the answer is scipy SLSQP's on the epigraph."""
     tuner = ScreenSLP(screen=0, local=2, steps=40, swi_margin=0.1)
-    reference = minimize(lambda z: z[2], x0=[2.0, 2.0, 10.0], method="SLSQP",
-                         constraints=[{"type": "ineq", "fun": lambda z: z[2] - cb2(z[:2])[0]},
-                                      {"type": "ineq", "fun": lambda z: z[0] - 1.5}], options={"ftol": 1e-12})
+    reference = minimize(
+        lambda z: z[2],
+        x0=[2.0, 2.0, 10.0],
+        method="SLSQP",
+        constraints=[
+            {"type": "ineq", "fun": lambda z: z[2] - cb2(z[:2])[0]},
+            {"type": "ineq", "fun": lambda z: z[0] - 1.5},
+        ],
+        options={"ftol": 1e-12},
+    )
     result = solve(tuner, [[2.0, 2.0], [0.5, 0.0]], Analytic(floor=1.4))
     best = result.tuner.candidates(result.state)[0]
     assert best[0] >= 1.5 - 1e-9
@@ -146,8 +168,11 @@ def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():
     assert np.allclose(best, CB2_AT, atol=1e-4)
 
 
-@pytest.mark.parametrize("screened, stop", [(8, 2 * 8 * 3 + 2 * 3 + 8 * 3 + 2 * 3), (40, 3 * 8 * 3)],
-                         ids=["in the local solves", "among the CMA-ES generations"])
+@pytest.mark.parametrize(
+    "screened, stop",
+    [(8, 2 * 8 * 3 + 2 * 3 + 8 * 3 + 2 * 3), (40, 3 * 8 * 3)],
+    ids=["in the local solves", "among the CMA-ES generations"],
+)
 def test_resume_replays_to_the_same_iterates(tmp_path, screened, stop):
     starts = [[2.0, 2.0], [0.0, -1.0]]
     tuner = ScreenSLP(screen=screened, local=2, steps=8)
@@ -163,8 +188,9 @@ def test_resume_replays_to_the_same_iterates(tmp_path, screened, stop):
 
 def test_finite_difference_jacobians_solve_the_same_problem():
     """The ablation's central differences: on a smooth problem the same optimum as exact Jacobians."""
-    result = solve(ScreenSLP(screen=0, local=2, steps=40, jacobian="fd", fd_step=1e-5), [[2.0, 2.0], [0.0, -1.0]],
-                   Analytic())
+    result = solve(
+        ScreenSLP(screen=0, local=2, steps=40, jacobian="fd", fd_step=1e-5), [[2.0, 2.0], [0.0, -1.0]], Analytic()
+    )
     best = result.tuner.candidates(result.state)[0]
     assert np.allclose(best, CB2_AT, atol=1e-4)
 

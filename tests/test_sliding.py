@@ -20,10 +20,16 @@ LIMIT_DT = 2.5e-4  # see the docstring
 # release: there the located impact force is the peak, and the step grid alone misses 13 % of it.
 TABLE1 = dict(K_GP=0.5, K_GI=0.1, tau=1.25, G_e=600.0)
 HOLDS = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0)  # holds the grip at every mass
-RANDOM = [dict(K_GP=0.18, K_GI=0.04, tau=0.6, G_e=250.0), dict(K_GP=1.1, K_GI=0.3, tau=4.0, G_e=2000.0),
-          dict(K_GP=0.09, K_GI=0.5, tau=8.0, G_e=90.0)]
-SAMPLES = ([dict(TABLE1, M_b=m) for m in (0.5, 1.0, 2.5, 5.0)] + [dict(HOLDS, M_b=m) for m in (0.5, 1.2, 2.5, 5.0)]
-           + [dict(g, M_b=m) for g, m in zip(RANDOM, (0.8, 3.3, 1.7))])
+RANDOM = [
+    dict(K_GP=0.18, K_GI=0.04, tau=0.6, G_e=250.0),
+    dict(K_GP=1.1, K_GI=0.3, tau=4.0, G_e=2000.0),
+    dict(K_GP=0.09, K_GI=0.5, tau=8.0, G_e=90.0),
+]
+SAMPLES = (
+    [dict(TABLE1, M_b=m) for m in (0.5, 1.0, 2.5, 5.0)]
+    + [dict(HOLDS, M_b=m) for m in (0.5, 1.2, 2.5, 5.0)]
+    + [dict(g, M_b=m) for g, m in zip(RANDOM, (0.8, 3.3, 1.7))]
+)
 
 
 def columns(samples):
@@ -94,7 +100,8 @@ def test_during_sliding_the_force_stays_on_the_limit_to_round_off():
 
 
 def test_paper_scenario_is_unchanged():
-    """Fig. 6 does not slide: filippov at 1e-3 gives plain RK4's forces at 1e-4 (the reference values of docs/model.md)."""
+    """Fig. 6 does not slide: filippov at 1e-3 gives plain RK4's forces at 1e-4 (the reference values of
+    docs/model.md)."""
     times = (0.5, 1.0, 2.0, 3.0)
 
     def forces(**kwargs):
@@ -170,7 +177,9 @@ def test_crossing_is_the_root_of_the_quadratic_through_the_piece():
     root = (-rate + np.sqrt(rate**2 - 4 * curvature * sigma_n)) / (2 * curvature)
     assert root < h < -sigma_n / rate
     sigma_end = sigma_n + rate * h + curvature * h**2
-    assert float(crossing(jnp.array(sigma_n), jnp.array(rate), jnp.array(sigma_end), jnp.array(h))) == pytest.approx(root, rel=1e-12)
+    assert float(crossing(jnp.array(sigma_n), jnp.array(rate), jnp.array(sigma_end), jnp.array(h))) == pytest.approx(
+        root, rel=1e-12
+    )
     # no crossing in the piece: a finite placeholder (the caller masks it), and no NaN in its gradient
     import jax
 
@@ -258,14 +267,14 @@ def test_the_end_of_a_sliding_mode_is_located_at_the_true_time():
         v_o = z[19]
         dz, weights = np.zeros(20), []
         for i, s in enumerate((1.0, -1.0)):
-            yi = z[9 * i:9 * i + 9]
+            yi = z[9 * i : 9 * i + 9]
             F = p["F_lim"]
             off = ref.robot_rates(p, s, yi, F, 0.0, F, *ref.command("carry", i, t))
             on = ref.robot_rates(p, s, yi, F, 1.0, F, *ref.command("carry", i, t))
             delta_dot = s * (yi[1] - v_o)  # the body's acceleration is 0: both forces are F_lim
             sd0, sd1 = p["K_g"] * delta_dot + p["R_g"] * s * off[1], p["K_g"] * delta_dot + p["R_g"] * s * on[1]
             lam = sd0 / (sd0 - sd1)
-            dz[9 * i:9 * i + 9] = off + lam * (on - off)
+            dz[9 * i : 9 * i + 9] = off + lam * (on - off)
             weights.append(lam)
         dz[18] = v_o
         return dz, weights[1]
@@ -273,8 +282,9 @@ def test_the_end_of_a_sliding_mode_is_located_at_the_true_time():
     exit_R = lambda t, z: sliding(t, z)[1]
     exit_R.terminal = True
     z0 = np.concatenate([y[:18].reshape(9, 2).T.reshape(18), y[18:]])  # coopjax's layout -> robot-major
-    sol = solve_ivp(lambda t, z: sliding(t, z)[0], (t0, t0 + dt), z0, method="DOP853", rtol=1e-12, atol=1e-12,
-                    events=exit_R)
+    sol = solve_ivp(
+        lambda t, z: sliding(t, z)[0], (t0, t0 + dt), z0, method="DOP853", rtol=1e-12, atol=1e-12, events=exit_R
+    )
     t_star = sol.t_events[0][0] - t0
     assert 0.05 * dt < t_star < 0.95 * dt
 

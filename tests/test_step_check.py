@@ -14,17 +14,31 @@ from tuning import judge as judgement
 # M_b = 4 kg with filippov at dt = 5e-3. Its 15th best candidate holds there with a 13.2 mm lag (peak
 # 71.2 N); the dt -> 0 limit (filippov at 1e-4 and at 5e-5 agree) is 15.7 mm (peak 72.4 N). Of the 23
 # best that hold, one more misses the limit by more than a tolerance; the check flags both.
-ARTEFACT = dict(K_GP_L=0.053058, K_GP_R=0.101801, K_GI_L=0.132862, K_GI_R=0.038679, tau_L=0.392435,
-                tau_R=1.856302, G_e_L=2326.329928, G_e_R=1203.344196)
+ARTEFACT = dict(
+    K_GP_L=0.053058,
+    K_GP_R=0.101801,
+    K_GI_L=0.132862,
+    K_GI_R=0.038679,
+    tau_L=0.392435,
+    tau_R=1.856302,
+    G_e_L=2326.329928,
+    G_e_R=1203.344196,
+)
 ARTEFACT_DT = 5e-3
 HOLDS = dict(K_GP=0.054, K_GI=0.078, tau=2.93, G_e=1224.0)
 
 
 def test_step_error_is_in_units_of_the_tolerances():
-    coarse = {"min_grip": np.array([10.0, 10.0, 0.0, np.nan]), "peak_grip": np.array([30.0, 30.6, 0.0, 1.0]),
-              "rms_lag": np.array([5e-3, 5e-3, 0.0, 1.0])}
-    fine = {"min_grip": np.array([9.99, 10.0, 0.0, 1.0]), "peak_grip": np.array([30.0, 30.0, 0.0, 1.0]),
-            "rms_lag": np.array([5e-3, 5.05e-3, 0.0, 1.0])}
+    coarse = {
+        "min_grip": np.array([10.0, 10.0, 0.0, np.nan]),
+        "peak_grip": np.array([30.0, 30.6, 0.0, 1.0]),
+        "rms_lag": np.array([5e-3, 5e-3, 0.0, 1.0]),
+    }
+    fine = {
+        "min_grip": np.array([9.99, 10.0, 0.0, 1.0]),
+        "peak_grip": np.array([30.0, 30.0, 0.0, 1.0]),
+        "rms_lag": np.array([5e-3, 5.05e-3, 0.0, 1.0]),
+    }
     error = step_check.step_error(coarse, fine)
     np.testing.assert_allclose(error[:3], [0.2, 1.0, 0.0], rtol=1e-9)  # 0.01 N of 0.05; 2 % of 2 %; 0 = 0
     assert np.isnan(error[3])

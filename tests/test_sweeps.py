@@ -14,8 +14,20 @@ import coopjax as cj
 from coopjax import cli, io, sweeps
 
 # A small, well-conditioned sweep (the paper scenario is step-converged at dt = 1e-3).
-BASE = ["sweep", "--scenario", "paper", "--T", "1.0", "--vary", "M_b=loguniform:0.5:5",
-        "--vary", "K_GP=uniform:0.3:0.9", "--set", "G_e=500", "--quiet"]
+BASE = [
+    "sweep",
+    "--scenario",
+    "paper",
+    "--T",
+    "1.0",
+    "--vary",
+    "M_b=loguniform:0.5:5",
+    "--vary",
+    "K_GP=uniform:0.3:0.9",
+    "--set",
+    "G_e=500",
+    "--quiet",
+]
 
 
 def sweep_cli(*extra, cwd, devices=1, env=None, background=False, default_xla=False):
@@ -48,7 +60,9 @@ def assert_same_table(a, b):
 
 @pytest.mark.slow
 def test_rows_equal_single_simulate_runs():
-    spec = sweeps.make_spec("paper", n=12, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, fixed={"G_e": 500.0}, T=1.0)
+    spec = sweeps.make_spec(
+        "paper", n=12, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.3:0.9"}, fixed={"G_e": 500.0}, T=1.0
+    )
     table = sweeps.run(spec, chunk=5)
     for i in range(12):
         single = cj.simulate(cj.make_params(M_b=table["M_b"][i], K_GP=table["K_GP"][i], G_e=500.0), "paper", T=1.0)
@@ -62,8 +76,14 @@ def test_draws_follow_their_distributions_and_grids_are_factorial():
     d = sweeps.draw(spec.distributions(), np.arange(6), 0)
     np.testing.assert_allclose(d["K_GP"], [0.1, 0.1, 0.3, 0.3, 0.5, 0.5])
     assert d["tau"].tolist() == [1, 2, 1, 2, 1, 2]
-    big = sweeps.draw({"x": sweeps.parse_distribution("M_b", "loguniform:0.5:5"),
-                       "y": sweeps.parse_distribution("K_GP", "normal:2:0.5")}, np.arange(200_000), 7)
+    big = sweeps.draw(
+        {
+            "x": sweeps.parse_distribution("M_b", "loguniform:0.5:5"),
+            "y": sweeps.parse_distribution("K_GP", "normal:2:0.5"),
+        },
+        np.arange(200_000),
+        7,
+    )
     assert 0.5 <= big["x"].min() and big["x"].max() <= 5
     assert np.log(big["x"]).mean() == pytest.approx(np.log(np.sqrt(0.5 * 5)), abs=0.01)
     assert big["y"].mean() == pytest.approx(2, abs=0.01) and big["y"].std() == pytest.approx(0.5, abs=0.01)
@@ -115,8 +135,22 @@ def test_two_processes_under_jax_distributed_give_the_single_process_table(tmp_p
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     procs = [
-        sweep_cli("--n", "24", "--chunk", "8", "--out", "multi.csv", "--coordinator", f"127.0.0.1:{port}",
-                  "--num-processes", "2", "--process-id", str(i), cwd=tmp_path, background=True)
+        sweep_cli(
+            "--n",
+            "24",
+            "--chunk",
+            "8",
+            "--out",
+            "multi.csv",
+            "--coordinator",
+            f"127.0.0.1:{port}",
+            "--num-processes",
+            "2",
+            "--process-id",
+            str(i),
+            cwd=tmp_path,
+            background=True,
+        )
         for i in range(2)
     ]
     outs = [p.communicate(timeout=300) for p in procs]
@@ -140,14 +174,47 @@ def test_a_diverging_sample_is_flagged_and_the_others_are_right():
 def test_parquet_output_and_from_table_round_trip(fresh_dir):
     pd = pytest.importorskip("pandas")
     pytest.importorskip("pyarrow")
-    code = cli.main(["sweep", "--scenario", "paper", "--T", "1", "--devices", "1", "--quiet", "--n", "6",
-                     "--vary", "M_b=uniform:1:3", "--out", "s.parquet"])
+    code = cli.main(
+        [
+            "sweep",
+            "--scenario",
+            "paper",
+            "--T",
+            "1",
+            "--devices",
+            "1",
+            "--quiet",
+            "--n",
+            "6",
+            "--vary",
+            "M_b=uniform:1:3",
+            "--out",
+            "s.parquet",
+        ]
+    )
     assert code == 0
     frame = pd.read_parquet("s.parquet")
     assert list(frame.columns[:2]) == ["sample", "M_b"] and frame["finite"].dtype == bool
     frame[["M_b"]].to_csv("sets.csv", index=False)
-    assert cli.main(["sweep", "--scenario", "paper", "--T", "1", "--devices", "1", "--quiet",
-                     "--from", "sets.csv", "--out", "again.csv"]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                "--scenario",
+                "paper",
+                "--T",
+                "1",
+                "--devices",
+                "1",
+                "--quiet",
+                "--from",
+                "sets.csv",
+                "--out",
+                "again.csv",
+            ]
+        )
+        == 0
+    )
     again = io.read_table("again.csv")
     np.testing.assert_allclose(again["peak_grip"], frame["peak_grip"], rtol=1e-9)
     api = cj.sweep("paper", table={"M_b": frame["M_b"].to_numpy()}, T=1.0, dtype="float32")
@@ -166,8 +233,11 @@ def test_one_status_vocabulary_with_a_message_each():
     from coopjax import objectives
 
     with pytest.raises(ValueError, match="reported by every run"):
-        objectives.register(objectives.Metric("status", "1", "x", lambda b, d, c: 0, lambda a, o, p, c: a,
-                                              lambda a, c: a))
+        objectives.register(
+            objectives.Metric("status", "1", "x", lambda b, d, c: 0, lambda a, o, p, c: a, lambda a, c: a)
+        )
     # A run's own metrics speak it too: OK, or DIVERGED where the run did not stay finite.
-    m = cj.simulate(cj.make_params(K_GP=np.array([0.5, 100.0])), "paper", T=1.5, integrator="rk4", check_dt=False).metrics
+    m = cj.simulate(
+        cj.make_params(K_GP=np.array([0.5, 100.0])), "paper", T=1.5, integrator="rk4", check_dt=False
+    ).metrics
     assert [Status(int(s)) for s in m.status] == [Status.OK, Status.DIVERGED]

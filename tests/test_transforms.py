@@ -20,7 +20,9 @@ GAINS = jnp.array([0.3, 0.5, 0.8])
 
 
 def peak(k, M_b=2.0):
-    return cj.simulate(cj.make_params(K_GP=k, M_b=M_b), "paper", checkpoint=False, check_dt=False, **SETTINGS).metrics.peak_grip
+    return cj.simulate(
+        cj.make_params(K_GP=k, M_b=M_b), "paper", checkpoint=False, check_dt=False, **SETTINGS
+    ).metrics.peak_grip
 
 
 @pytest.mark.slow
@@ -31,8 +33,9 @@ def test_vmap_of_simulate_equals_a_loop_of_single_runs():
     # vmap over two arguments, and against the batch API (a batch axis on the parameters).
     masses = jnp.array([1.0, 2.0, 4.0])
     both = np.asarray(jax.jit(jax.vmap(peak))(GAINS, masses))
-    batch = cj.simulate(cj.make_params(K_GP=np.asarray(GAINS), M_b=np.asarray(masses)), "paper", checkpoint=False,
-                        **SETTINGS)
+    batch = cj.simulate(
+        cj.make_params(K_GP=np.asarray(GAINS), M_b=np.asarray(masses)), "paper", checkpoint=False, **SETTINGS
+    )
     np.testing.assert_allclose(both, np.asarray(batch.metrics.peak_grip), rtol=1e-12)
 
 
@@ -67,9 +70,11 @@ def test_the_import_contracts_hold():
 def test_xla_default_flags_give_the_suites_answer_to_round_off():
     """The suite compiles with faster-compiling XLA flags (conftest.py); users get XLA's defaults.
     A run under the defaults, in a fresh process, equals the suite's to round-off."""
-    code = ("import json, jax; jax.config.update('jax_enable_x64', True); import coopjax as cj; "
-            "m = cj.simulate(cj.make_params(M_b=3.0, K_GP=0.3), 'paper', switch='smooth', T=0.5).metrics; "
-            "print(json.dumps({k: float(getattr(m, k)) for k in ('min_grip', 'peak_grip', 'slip', 'crush')}))")
+    code = (
+        "import json, jax; jax.config.update('jax_enable_x64', True); import coopjax as cj; "
+        "m = cj.simulate(cj.make_params(M_b=3.0, K_GP=0.3), 'paper', switch='smooth', T=0.5).metrics; "
+        "print(json.dumps({k: float(getattr(m, k)) for k in ('min_grip', 'peak_grip', 'slip', 'crush')}))"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]

@@ -81,9 +81,11 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
     evaluate = Evaluator(PROBLEM, BASE)
     both = evaluate(Query(THETA, masses))
     for k in range(THETA.shape[0]):
-        one = evaluate(Query(THETA[k:k + 1], masses))
+        one = evaluate(Query(THETA[k : k + 1], masses))
         for name in ("f", "c", "peak", "rms_lag", "min_grip", "min_swi"):
-            np.testing.assert_allclose(getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name)
+            np.testing.assert_allclose(
+                getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name
+            )
 
 
 @pytest.mark.slow
@@ -95,14 +97,18 @@ def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     with pytest.raises(cj.InputError, match="resume it"):
         driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=cut)  # never silently restarts
     with pytest.raises(cj.InputError, match="other options"):
-        driver.run(AdamAL(steps=5, mode="forward", learning_rate=0.2), PROBLEM, BASE, THETA, 0, checkpoint=cut, resume=True)
+        driver.run(
+            AdamAL(steps=5, mode="forward", learning_rate=0.2), PROBLEM, BASE, THETA, 0, checkpoint=cut, resume=True
+        )
     resumed = driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=cut, resume=True)
     assert resumed.state.step == whole.state.step == 4
     for field in ("theta", "good", "scale", "best_theta", "best_f"):
         np.testing.assert_array_equal(getattr(resumed.state, field), getattr(whole.state, field))
     assert resumed.state.history["f"] == whole.state.history["f"]
-    for a, b in zip(jax.tree_util.tree_leaves((resumed.state.opt_state, resumed.state.mult)),
-                    jax.tree_util.tree_leaves((whole.state.opt_state, whole.state.mult))):
+    for a, b in zip(
+        jax.tree_util.tree_leaves((resumed.state.opt_state, resumed.state.mult)),
+        jax.tree_util.tree_leaves((whole.state.opt_state, whole.state.mult)),
+    ):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # The multipliers moved (al_every = 3 < 4 steps), so the replay carried them.
     assert np.any(np.asarray(whole.state.mult.lam) > 0)
@@ -146,8 +152,19 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
         C = len(query.thetas)
         c = np.maximum(0.0, query.thetas[:, :1] + 1.0) * np.ones((C, 2))
         zeros = np.zeros((C, 2))
-        state = tuner.tell(state, query, Evaluation(f=(query.thetas**2).sum(1), c=c, peak=zeros, rms_lag=zeros,
-                                                    min_grip=zeros, valid=np.ones(C, bool), holds=(c == 0).all(1)))
+        state = tuner.tell(
+            state,
+            query,
+            Evaluation(
+                f=(query.thetas**2).sum(1),
+                c=c,
+                peak=zeros,
+                rms_lag=zeros,
+                min_grip=zeros,
+                valid=np.ones(C, bool),
+                holds=(c == 0).all(1),
+            ),
+        )
     assert state.restarts >= 1 and state.popsize == first * 2**state.restarts
     assert list(tmp_path.iterdir()) == []  # cma's loggers wrote nothing, not even their folder
     import cma.constraints_handler

@@ -14,14 +14,38 @@ from tuning.tuners import TUNERS
 from test_tuning import BASE, PROBLEM, THETA, TUNER
 
 
-METHOD_FLAGS = {"screen-SLP": ["--screen", "8", "--local", "2"], "gradient": ["--method", "gradient", "--mode", "forward"]}
+METHOD_FLAGS = {
+    "screen-SLP": ["--screen", "8", "--local", "2"],
+    "gradient": ["--method", "gradient", "--mode", "forward"],
+}
 
 
 @pytest.mark.parametrize("method", list(METHOD_FLAGS))
 def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh_dir, capsys, method):
-    code = cli.main(["tune", "--steps", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2", "--params", "gains",
-                     "--masses", "loguniform:0.8:4.5", "--margin", "0", "--fixed-masses", *METHOD_FLAGS[method],
-                     "--out", "tuned.json", "--quiet"])
+    code = cli.main(
+        [
+            "tune",
+            "--steps",
+            "2",
+            "--starts",
+            "2",
+            "--train-masses",
+            "2",
+            "--held-out",
+            "2",
+            "--params",
+            "gains",
+            "--masses",
+            "loguniform:0.8:4.5",
+            "--margin",
+            "0",
+            "--fixed-masses",
+            *METHOD_FLAGS[method],
+            "--out",
+            "tuned.json",
+            "--quiet",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "holds >= F_lim" in out
@@ -30,8 +54,11 @@ def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh
     assert result["judge"]["dt"] == judgement.JUDGE_DT and result["judge"]["integrator"] == "filippov"
     # The same two sets through the Python API, in one batch as the CLI does: Table 1's gains lose
     # the grip, and a released body's impacts amplify rounding differences between batch shapes.
-    paper, fresh = judgement.judge([result["start"], result["params"]], np.asarray(result["held_out_masses"]),
-                            w_lag=result["config"]["problem"]["w_lag"])
+    paper, fresh = judgement.judge(
+        [result["start"], result["params"]],
+        np.asarray(result["held_out_masses"]),
+        w_lag=result["config"]["problem"]["w_lag"],
+    )
     for key in ("min_grip", "peak_grip", "rms_lag", "objective"):
         assert result["after"][key] == pytest.approx(getattr(fresh, key), rel=1e-12), key
         assert result["before"][key] == pytest.approx(getattr(paper, key), rel=1e-12), key
@@ -61,8 +88,28 @@ def test_a_full_disk_at_the_end_keeps_the_checkpoint_and_resume_writes_the_resul
 
     from tuning import cli as tune_cli
 
-    args = ["tune", "--steps", "2", "--screen", "8", "--local", "2", "--starts", "2", "--train-masses", "2", "--held-out", "2",
-            "--params", "gains", "--masses", "loguniform:0.8:4.5", "--margin", "0", "--quiet"]
+    args = [
+        "tune",
+        "--steps",
+        "2",
+        "--screen",
+        "8",
+        "--local",
+        "2",
+        "--starts",
+        "2",
+        "--train-masses",
+        "2",
+        "--held-out",
+        "2",
+        "--params",
+        "gains",
+        "--masses",
+        "loguniform:0.8:4.5",
+        "--margin",
+        "0",
+        "--quiet",
+    ]
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")

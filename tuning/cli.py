@@ -28,9 +28,23 @@ from coopjax.stability import check_step
 from tuning import driver, race
 from tuning.plots import plot_history, plot_pareto, plot_race, plot_traces
 from tuning.judge import JUDGE_DT, judge, judge_config, select
-from tuning.problem import (AGGREGATES, HOLD_TOLERANCE, SURROGATE_DT, SWITCHES, TRAIN_DT, Problem, check_mass_range,
-                            expand_params, from_log, held_out_masses, log_bounds, starting_points, to_log,
-                            training_config, validation_masses)
+from tuning.problem import (
+    AGGREGATES,
+    HOLD_TOLERANCE,
+    SURROGATE_DT,
+    SWITCHES,
+    TRAIN_DT,
+    Problem,
+    check_mass_range,
+    expand_params,
+    from_log,
+    held_out_masses,
+    log_bounds,
+    starting_points,
+    to_log,
+    training_config,
+    validation_masses,
+)
 from tuning.tuners import TUNERS
 from tuning.tuners.cmaes import CMAES
 from tuning.tuners.screen_slp import ScreenSLP
@@ -39,8 +53,14 @@ NAME = "tune"
 DEFAULT_OUT = "tuned.json"
 # API names of the tuning problem, and the flags that set them (the tuners' own are added from their
 # declarations by `add_parser`).
-FIELD_FLAGS = {"names": "--params", "n_masses": "--train-masses", "cvar_alpha": "--cvar-alpha", "w_lag": "--w-lag",
-               "spread": "--spread", "masses": "--masses"}
+FIELD_FLAGS = {
+    "names": "--params",
+    "n_masses": "--train-masses",
+    "cvar_alpha": "--cvar-alpha",
+    "w_lag": "--w-lag",
+    "spread": "--spread",
+    "masses": "--masses",
+}
 STARTS, SPREAD = 8, 2.5  # K starting points: the first is the user's (Table 1's), the others drawn near it
 DEFAULT_METHOD = ScreenSLP.name
 
@@ -71,8 +91,9 @@ def _add_tuner_flags(p) -> None:
         first = owners[0][1]
         kind = type(first.default)
         text = "; ".join(f"{cls.name}: {f.metadata['help']} (default {f.default})" for cls, f in owners)
-        p.add_argument(flag, dest=_dest(flag), type=kind, default=None, choices=first.metadata.get("choices"),
-                       help=text)
+        p.add_argument(
+            flag, dest=_dest(flag), type=kind, default=None, choices=first.metadata.get("choices"), help=text
+        )
         for _, f in owners:
             FIELD_FLAGS[f.name] = flag
 
@@ -80,43 +101,125 @@ def _add_tuner_flags(p) -> None:
 def add_parser(sub):
     p0 = Problem()
     p = sub.add_parser(
-        NAME, help="tune the controller on the hard model; judge before/after on held-out masses",
+        NAME,
+        help="tune the controller on the hard model; judge before/after on held-out masses",
         description="Tune controller parameters on the carry scenario, on the hard switch under the sliding-mode "
         "integrator: minimise worst-case peak grip force + w_lag x worst-case RMS lag, with the grip holding at every "
         "training mass. The default method (screen-SLP) screens hundreds of points in batches (CMA-ES "
         "generations), then runs trust-region linear programs on the worst case from the best of them, with exact "
-        "Jacobians; --method gradient runs Adam on an augmented Lagrangian. The result is judged with the hard model at --judge-dt on held-out masses. "
+        "Jacobians; --method gradient runs Adam on an augmented Lagrangian. The result is judged with the hard "
+        "model at --judge-dt on held-out masses. "
         "Writes OUT (json; a figure that is not finite is null), OUT's _history.png and _traces.png (with --compare: "
         "_race.png; with --pareto: _pareto.png).",
     )
-    p.add_argument("--method", default=DEFAULT_METHOD, choices=list(methods()),
-                   help=f"the tuner (default {DEFAULT_METHOD}); its settings are the flags that name it below")
-    p.add_argument("--params", default="all", help="comma-separated names, or gains (K_GP,K_GI,tau,G_e), per-robot "
-                   "(the 4 gains of each robot: 8) or all (per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14) (default all)")
-    p.add_argument("--masses", default="loguniform:0.5:5", help="body-mass range, loguniform:LOW:HIGH or uniform:LOW:HIGH, kg (default loguniform:0.5:5)")
-    p.add_argument("--train-masses", type=int, default=p0.n_masses, help=f"training masses (screen-SLP: a grid, ends included; gradient: one per equal-probability stratum, drawn afresh each step) (default {p0.n_masses})")
-    p.add_argument("--margin", type=float, default=p0.margin, help=f"the training grid spans the range widened by this fraction (default {p0.margin:g})")
-    p.add_argument("--fixed-masses", dest="jitter", action="store_false", help="gradient: train on the strata's midpoints every step instead of a fresh draw per stratum")
-    p.add_argument("--switch", default="hard", help=f"training model: {', '.join(SWITCHES)} (default hard: the sliding-mode integrator; the others are smooth surrogates under plain RK4)")
-    p.add_argument("--dt", type=float, default=None, help=f"training step, s (default {TRAIN_DT:g} for hard, {SURROGATE_DT:g} for the surrogates)")
-    p.add_argument("--w-lag", type=float, default=p0.w_lag, help=f"N of worst peak force per mm of worst RMS lag (default {p0.w_lag:g})")
-    p.add_argument("--aggregate", default=p0.aggregate, help=f"gradient: its smooth worst case over masses: {', '.join(AGGREGATES)} (default {p0.aggregate})")
-    p.add_argument("--temperature", type=float, default=p0.temperature, help=f"gradient: softness of smoothmax, N (default {p0.temperature:g})")
-    p.add_argument("--cvar-alpha", type=float, default=p0.cvar_alpha, help=f"gradient, cvar: the worst share of masses averaged (default {p0.cvar_alpha:g})")
-    p.add_argument("--starts", type=int, default=STARTS, help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)")
+    p.add_argument(
+        "--method",
+        default=DEFAULT_METHOD,
+        choices=list(methods()),
+        help=f"the tuner (default {DEFAULT_METHOD}); its settings are the flags that name it below",
+    )
+    p.add_argument(
+        "--params",
+        default="all",
+        help="comma-separated names, or gains (K_GP,K_GI,tau,G_e), per-robot "
+        "(the 4 gains of each robot: 8) or all (per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14) (default all)",
+    )
+    p.add_argument(
+        "--masses",
+        default="loguniform:0.5:5",
+        help="body-mass range, loguniform:LOW:HIGH or uniform:LOW:HIGH, kg (default loguniform:0.5:5)",
+    )
+    p.add_argument(
+        "--train-masses",
+        type=int,
+        default=p0.n_masses,
+        help="training masses (screen-SLP: a grid, ends included; gradient: one per equal-probability stratum, "
+        f"drawn afresh each step) (default {p0.n_masses})",
+    )
+    p.add_argument(
+        "--margin",
+        type=float,
+        default=p0.margin,
+        help=f"the training grid spans the range widened by this fraction (default {p0.margin:g})",
+    )
+    p.add_argument(
+        "--fixed-masses",
+        dest="jitter",
+        action="store_false",
+        help="gradient: train on the strata's midpoints every step instead of a fresh draw per stratum",
+    )
+    p.add_argument(
+        "--switch",
+        default="hard",
+        help=f"training model: {', '.join(SWITCHES)} (default hard: the sliding-mode integrator; the others are "
+        "smooth surrogates under plain RK4)",
+    )
+    p.add_argument(
+        "--dt",
+        type=float,
+        default=None,
+        help=f"training step, s (default {TRAIN_DT:g} for hard, {SURROGATE_DT:g} for the surrogates)",
+    )
+    p.add_argument(
+        "--w-lag",
+        type=float,
+        default=p0.w_lag,
+        help=f"N of worst peak force per mm of worst RMS lag (default {p0.w_lag:g})",
+    )
+    p.add_argument(
+        "--aggregate",
+        default=p0.aggregate,
+        help=f"gradient: its smooth worst case over masses: {', '.join(AGGREGATES)} (default {p0.aggregate})",
+    )
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=p0.temperature,
+        help=f"gradient: softness of smoothmax, N (default {p0.temperature:g})",
+    )
+    p.add_argument(
+        "--cvar-alpha",
+        type=float,
+        default=p0.cvar_alpha,
+        help=f"gradient, cvar: the worst share of masses averaged (default {p0.cvar_alpha:g})",
+    )
+    p.add_argument(
+        "--starts",
+        type=int,
+        default=STARTS,
+        help=f"starting points run as one batch (default {STARTS}; the first is Table 1's)",
+    )
     _add_tuner_flags(p)
-    p.add_argument("--spread", type=float, default=SPREAD, help=f"random starts lie within x/÷ e^SPREAD of the first (default {SPREAD:g})")
+    p.add_argument(
+        "--spread",
+        type=float,
+        default=SPREAD,
+        help=f"random starts lie within x/÷ e^SPREAD of the first (default {SPREAD:g})",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts and of the mass draws (default 0)")
-    p.add_argument("--judge-dt", type=float, default=JUDGE_DT, help=f"step of the hard model for validation and judging, s (default {JUDGE_DT:g})")
+    p.add_argument(
+        "--judge-dt",
+        type=float,
+        default=JUDGE_DT,
+        help=f"step of the hard model for validation and judging, s (default {JUDGE_DT:g})",
+    )
     p.add_argument("--held-out", type=int, default=12, help="held-out masses for judging (default 12, ends included)")
-    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="fix another parameter (repeatable)")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", help="fix another parameter (repeatable)"
+    )
     p.add_argument("--out", default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT}); plots go beside it")
     p.add_argument("--resume", action="store_true", help="continue an interrupted plain run from OUT.ckpt")
     p.add_argument("--compare", action="store_true", help="race every registered tuner over --seeds on one clock")
     p.add_argument("--seeds", default="0,1,2,3,4", help="seeds of --compare (default 0,1,2,3,4)")
-    p.add_argument("--race-budget", default="time", help="--compare: every tuner gets the --method's wall time (time, "
-                   "the default) or as many simulated trajectories (trajectories)")
-    p.add_argument("--pareto", action="store_true", help="one run per lag weight: the worst-peak / worst-lag front of every tuner")
+    p.add_argument(
+        "--race-budget",
+        default="time",
+        help="--compare: every tuner gets the --method's wall time (time, "
+        "the default) or as many simulated trajectories (trajectories)",
+    )
+    p.add_argument(
+        "--pareto", action="store_true", help="one run per lag weight: the worst-peak / worst-lag front of every tuner"
+    )
     p.add_argument("--lag-weights", default="0.5,1.5,4", help="lag weights of --pareto, N/mm (default 0.5,1.5,4)")
     p.add_argument("--devices", type=int, default=None, help="CPU devices (default: one per core)")
     p.add_argument("--quiet", action="store_true", help="a progress bar instead of a line per step")
@@ -170,6 +273,7 @@ class Plan:
         fixed = assignments(args.set)
         if any(split_name(n)[0] == "M_b" for n in fixed):
             raise BadInput("--set M_b: the body mass is what the tuner varies; give its range with --masses")
+
         def overlaps(a, b):  # the same parameter, for a robot both names cover
             (base_a, robot_a), (base_b, robot_b) = split_name(a), split_name(b)
             return base_a == base_b and (robot_a is None or robot_b is None or robot_a == robot_b)
@@ -179,9 +283,18 @@ class Plan:
             raise BadInput(f"{clash[0]} is both tuned (--params) and fixed (--set): choose one")
         self.base = make_params(**fixed)
         self.first = {n: float(np.asarray(self.base.get(n)).ravel()[0]) for n in names}
-        self.problem = Problem(names=names, masses=masses, n_masses=args.train_masses, margin=args.margin,
-                               jitter=args.jitter, config=training_config(args.switch, args.dt), w_lag=args.w_lag,
-                               aggregate=args.aggregate, temperature=args.temperature, cvar_alpha=args.cvar_alpha).validate()
+        self.problem = Problem(
+            names=names,
+            masses=masses,
+            n_masses=args.train_masses,
+            margin=args.margin,
+            jitter=args.jitter,
+            config=training_config(args.switch, args.dt),
+            w_lag=args.w_lag,
+            aggregate=args.aggregate,
+            temperature=args.temperature,
+            cvar_alpha=args.cvar_alpha,
+        ).validate()
         self.starts, self.spread, self.seed = args.starts, args.spread, args.seed
         self.held_out = held_out_masses(masses, args.held_out)
         self.judge_dt = args.judge_dt
@@ -207,15 +320,23 @@ class Plan:
                 try:
                     cls().init(self.problem, np.clip(to_log(self.first, names), *log_bounds(names))[None], 0)
                 except InputError as error:
-                    raise BadInput(f"--{'compare' if args.compare else 'pareto'} runs every tuner, and {name} "
-                                   f"cannot: {error}") from None
+                    raise BadInput(
+                        f"--{'compare' if args.compare else 'pareto'} runs every tuner, and {name} cannot: {error}"
+                    ) from None
 
     def starts_for(self, seed: int, problem: Problem | None = None) -> np.ndarray:
         return starting_points(problem or self.problem, self.base, self.first, self.starts, self.spread, seed)
 
     def describe(self) -> dict:
-        return {"problem": _plain(self.problem), "tuner": self.tuner.name, "tuner_settings": dataclasses.asdict(self.tuner),
-                "starts": self.starts, "spread": self.spread, "seed": self.seed, "judge_dt": self.judge_dt}
+        return {
+            "problem": _plain(self.problem),
+            "tuner": self.tuner.name,
+            "tuner_settings": dataclasses.asdict(self.tuner),
+            "starts": self.starts,
+            "spread": self.spread,
+            "seed": self.seed,
+            "judge_dt": self.judge_dt,
+        }
 
 
 def make_tuner(args):
@@ -229,8 +350,9 @@ def make_tuner(args):
             continue
         field = next((f for c, f in owners if c is cls), None)
         if field is None:
-            raise BadInput(f"{flag} sets the {' and '.join(c.name for c, _ in owners)} tuner; "
-                           f"this run's method is {cls.name}")
+            raise BadInput(
+                f"{flag} sets the {' and '.join(c.name for c, _ in owners)} tuner; this run's method is {cls.name}"
+            )
         settings[field.name] = value
     if "spread" in {f.name for f in dataclasses.fields(cls)}:  # the screen's box is the starts' (--spread)
         settings["spread"] = args.spread
@@ -245,8 +367,14 @@ def _plain(problem: Problem) -> dict:
 
 def paths(out: str) -> dict:
     stem = out[:-5] if out.endswith(".json") else out
-    return {"out": out, "checkpoint": out + ".ckpt", "history": stem + "_history.png", "traces": stem + "_traces.png",
-            "race": stem + "_race.png", "pareto": stem + "_pareto.png"}
+    return {
+        "out": out,
+        "checkpoint": out + ".ckpt",
+        "history": stem + "_history.png",
+        "traces": stem + "_traces.png",
+        "race": stem + "_race.png",
+        "pareto": stem + "_pareto.png",
+    }
 
 
 def run(args) -> int:
@@ -260,8 +388,11 @@ def run(args) -> int:
         pass
     check_output(args.out, "--out", ("json",))
     files = paths(args.out)
-    written = ["history", "traces", "checkpoint"] if not (args.compare or args.pareto) else (
-        ["race"] if args.compare else ["pareto"])
+    written = (
+        ["history", "traces", "checkpoint"]
+        if not (args.compare or args.pareto)
+        else (["race"] if args.compare else ["pareto"])
+    )
     for key in written:  # every file this run will write, before any work
         check_output(files[key], f"--out (its {key} file)")
     if os.path.exists(files["checkpoint"]) and not args.resume:
@@ -277,15 +408,20 @@ def run(args) -> int:
 
 
 def _resumable(files):
-    return lambda: (f"the checkpoint {files['checkpoint']} is kept; add --resume to the same command to continue"
-                    if os.path.exists(files["checkpoint"]) else None)
+    return lambda: (
+        f"the checkpoint {files['checkpoint']} is kept; add --resume to the same command to continue"
+        if os.path.exists(files["checkpoint"])
+        else None
+    )
 
 
 def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
     start = time.perf_counter()
     problem, tuner = plan.problem, plan.tuner
-    print(f"tuning {', '.join(problem.names)} with {tuner.name}: {tuner.plan_text(len(problem.names), plan.starts)}; "
-          f"{problem.switch} model ({problem.config.method}, dt = {problem.dt:g} s)")
+    print(
+        f"tuning {', '.join(problem.names)} with {tuner.name}: {tuner.plan_text(len(problem.names), plan.starts)}; "
+        f"{problem.switch} model ({problem.config.method}, dt = {problem.dt:g} s)"
+    )
     interrupts.report_with(_resumable(files))
 
     def line(state, query, ev):
@@ -294,23 +430,48 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
             print(text)
 
     start_side = _StartSide(plan)
-    result = driver.run(tuner, problem, plan.base, plan.starts_for(plan.seed), plan.seed, checkpoint=files["checkpoint"],
-                        resume=resume, progress=quiet, total=tuner.expected_evaluations(plan.starts),
-                        on_step=None if quiet else line)
+    result = driver.run(
+        tuner,
+        problem,
+        plan.base,
+        plan.starts_for(plan.seed),
+        plan.seed,
+        checkpoint=files["checkpoint"],
+        resume=resume,
+        progress=quiet,
+        total=tuner.expected_evaluations(plan.starts),
+        on_step=None if quiet else line,
+    )
     tuned, selection = _select(plan, result)
-    print(f"judging with the hard model (filippov), float64, dt = {plan.judge_dt:g} s, on {len(plan.held_out)} held-out "
-          f"masses from {plan.held_out[0]:.3g} to {plan.held_out[-1]:.3g} kg ...")
+    print(
+        f"judging with the hard model (filippov), float64, dt = {plan.judge_dt:g} s, on {len(plan.held_out)} held-out "
+        f"masses from {plan.held_out[0]:.3g} to {plan.held_out[-1]:.3g} kg ..."
+    )
     before, start_trace = start_side.result()
     after = judge(tuned, plan.held_out, plan.base, problem.w_lag, plan.judge_dt)
     history = dict(tuner.history(result.state))
     history.pop("theta", None)
     data = {
-        "params": tuned, "start": plan.first, "before": before.row(), "after": after.row(),
+        "params": tuned,
+        "start": plan.first,
+        "before": before.row(),
+        "after": after.row(),
         "held_out_masses": [float(m) for m in plan.held_out],
-        "judge": {"switch": "hard", "contact": "unilateral", "integrator": "filippov", "dtype": "float64",
-                  "dt": plan.judge_dt, "hold_tolerance_N": HOLD_TOLERANCE},
-        "config": plan.describe(), "method": tuner.plan_text(len(problem.names), plan.starts), "history": history, "trajectories": result.trajectories,
-        "tuning_seconds": result.elapsed, "compile_seconds": result.compile_s, "selection": selection,
+        "judge": {
+            "switch": "hard",
+            "contact": "unilateral",
+            "integrator": "filippov",
+            "dtype": "float64",
+            "dt": plan.judge_dt,
+            "hold_tolerance_N": HOLD_TOLERANCE,
+        },
+        "config": plan.describe(),
+        "method": tuner.plan_text(len(problem.names), plan.starts),
+        "history": history,
+        "trajectories": result.trajectories,
+        "tuning_seconds": result.elapsed,
+        "compile_seconds": result.compile_s,
+        "selection": selection,
     }
     with Outputs() as out:  # the result and its figures together, or none of them
         nulls = write_json(out.path(files["out"]), data)
@@ -320,8 +481,10 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
     _print_table(before, after, plan.first, tuned, problem)
     if nulls:
         print(f"({len(nulls)} figure(s) that are not finite are null in {files['out']})")
-    print(f"{result.trajectories} trajectories, {result.elapsed:.0f} s of tuning (+ {result.compile_s:.0f} s compiling), "
-          f"{time.perf_counter() - start:.0f} s in all")
+    print(
+        f"{result.trajectories} trajectories, {result.elapsed:.0f} s of tuning (+ {result.compile_s:.0f} s compiling), "
+        f"{time.perf_counter() - start:.0f} s in all"
+    )
     print(f"wrote {files['out']}, {files['history']} and {files['traces']}")
     return 0
 
@@ -330,17 +493,26 @@ def _select(plan: Plan, result):
     """Among the tuner's candidates, the best on the validation masses."""
     options = [from_log(t, plan.problem.names) for t in result.tuner.candidates(result.state)]
     masses = validation_masses(plan.problem)
-    print(f"selecting among {len(options)} candidates: hard model on {len(masses)} validation masses from "
-          f"{masses[0]:.3g} to {masses[-1]:.3g} kg (none of them held out) ...")
+    print(
+        f"selecting among {len(options)} candidates: hard model on {len(masses)} validation masses from "
+        f"{masses[0]:.3g} to {masses[-1]:.3g} kg (none of them held out) ..."
+    )
     # The two-step check is the judge's (below): validating every candidate twice would double the
     # selection's compile and run time for a check that the chosen one gets anyway.
     chosen, verdicts = select(options, masses, plan.base, plan.problem.w_lag, plan.judge_dt, check_step=False)
     v = verdicts[chosen]
     held = sum(x.holds for x in verdicts)
-    print(f"  {held} of {len(options)} hold at every validation mass; the chosen one: min grip {v.min_grip:.3f} N, "
-          f"peak {v.peak_grip:.2f} N, lag {v.rms_lag * 1e3:.2f} mm")
-    return options[chosen], {"candidates": len(options), "holding": held, "chosen": chosen,
-                             "validation_masses": [float(m) for m in masses], "validation": v.row()}
+    print(
+        f"  {held} of {len(options)} hold at every validation mass; the chosen one: min grip {v.min_grip:.3f} N, "
+        f"peak {v.peak_grip:.2f} N, lag {v.rms_lag * 1e3:.2f} mm"
+    )
+    return options[chosen], {
+        "candidates": len(options),
+        "holding": held,
+        "chosen": chosen,
+        "validation_masses": [float(m) for m in masses],
+        "validation": v.row(),
+    }
 
 
 def _print_table(before, after, start, tuned, problem):
@@ -348,15 +520,24 @@ def _print_table(before, after, start, tuned, problem):
     print(f"{'':<30} {'start (Table 1)':>16} {'tuned':>12}")
     for n in problem.names:
         print(f"{n:<30} {start[n]:>16.5g} {tuned[n]:>12.5g}")
-    rows = [("worst min grip [N]", "min_grip", 1), ("worst peak grip [N]", "peak_grip", 1),
-            ("worst RMS lag [mm]", "rms_lag", 1e3), ("worst slip [N^2]", "slip", 1), ("worst crush [N^2]", "crush", 1),
-            ("worst after-release crush [N^2]", "impact", 1),
-            (f"peak + {problem.w_lag:g} x lag [N]", "objective", 1)]
+    rows = [
+        ("worst min grip [N]", "min_grip", 1),
+        ("worst peak grip [N]", "peak_grip", 1),
+        ("worst RMS lag [mm]", "rms_lag", 1e3),
+        ("worst slip [N^2]", "slip", 1),
+        ("worst crush [N^2]", "crush", 1),
+        ("worst after-release crush [N^2]", "impact", 1),
+        (f"peak + {problem.w_lag:g} x lag [N]", "objective", 1),
+    ]
     for label, key, scale in rows:
         print(f"{label:<30} {getattr(before, key) * scale:>16.4g} {getattr(after, key) * scale:>12.4g}")
     verdict = lambda v: "yes" if v.holds else "NO"
     print(f"{'holds >= F_lim at every mass':<30} {verdict(before):>16} {verdict(after):>12}")
-    check = lambda v: "not run" if not np.isfinite(v.step_error) else f"{'ARTEFACT' if v.step_artefact else 'ok'} ({v.step_error:.2f})"
+    check = lambda v: (
+        "not run"
+        if not np.isfinite(v.step_error)
+        else f"{'ARTEFACT' if v.step_artefact else 'ok'} ({v.step_error:.2f})"
+    )
     print(f"{'dt/2 check (1 = tolerance)':<30} {check(before):>16} {check(after):>12}")
     print()
 
@@ -376,8 +557,10 @@ class _StartSide(threading.Thread):
     def run(self):
         plan = self.plan
         try:
-            self.value = (judge(plan.first, plan.held_out, plan.base, plan.problem.w_lag, plan.judge_dt),
-                          _trace(plan, plan.first))
+            self.value = (
+                judge(plan.first, plan.held_out, plan.base, plan.problem.w_lag, plan.judge_dt),
+                _trace(plan, plan.first),
+            )
         except BaseException as error:  # noqa: BLE001 (re-raised in the main thread)
             self.error = error
 
@@ -398,13 +581,21 @@ def _trace(plan: Plan, values):
 def _plots(plan: Plan, tuned, start_trace, result, files, out: Outputs):
     p = plan.problem
     what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
-    plot_history(plan.tuner.history(result.state), out.path(files["history"]),
-                 f"tuning {what} with {plan.tuner.name} on the {p.switch} model (dt = {p.dt:g} s), {p.n_masses} masses\n"
-                 f"{plan.tuner.plan_text(len(p.names), plan.starts)}")
+    plot_history(
+        plan.tuner.history(result.state),
+        out.path(files["history"]),
+        f"tuning {what} with {plan.tuner.name} on the {p.switch} model (dt = {p.dt:g} s), {p.n_masses} masses\n"
+        f"{plan.tuner.plan_text(len(p.names), plan.starts)}",
+    )
     runs = {"start (Table 1)": start_trace, "tuned": _trace(plan, tuned)}
     ends = np.array([plan.held_out[0], plan.held_out[-1]])
-    plot_traces(runs, ends, float(np.asarray(plan.base.F_lim).min()), float(np.asarray(plan.base.F_max)),
-                out.path(files["traces"]))
+    plot_traces(
+        runs,
+        ends,
+        float(np.asarray(plan.base.F_lim).min()),
+        float(np.asarray(plan.base.F_max)),
+        out.path(files["traces"]),
+    )
 
 
 def _tuners(plan: Plan) -> dict:
@@ -413,8 +604,18 @@ def _tuners(plan: Plan) -> dict:
 
 
 def _compare(plan: Plan, files, quiet: bool) -> int:
-    result = race.run(_tuners(plan), plan.tuner.name, plan.problem, plan.base, plan.starts_for, plan.seeds,
-                      progress=quiet, judge_dt=plan.judge_dt, budget=plan.race_budget, target=CMAES.name)
+    result = race.run(
+        _tuners(plan),
+        plan.tuner.name,
+        plan.problem,
+        plan.base,
+        plan.starts_for,
+        plan.seeds,
+        progress=quiet,
+        judge_dt=plan.judge_dt,
+        budget=plan.race_budget,
+        target=CMAES.name,
+    )
     result["config"] = plan.describe()
     with Outputs() as out:
         write_json(out.path(files["out"]), result)
@@ -443,21 +644,29 @@ def _pareto(plan: Plan, files) -> int:
             options = [from_log(t, names) for t in tuner.candidates(result.state)]
             options += [from_log(result.record.thetas[i], names) for _, i in race.snapshots(result.record)]
             if options:
-                rows_in.append(("front", name, w_lag, options[select(options, masses, plan.base, w_lag, plan.judge_dt)[0]]))
+                rows_in.append(
+                    ("front", name, w_lag, options[select(options, masses, plan.base, w_lag, plan.judge_dt)[0]])
+                )
             if w_lag == plan.weights[0]:  # the cloud of what held in training, once
                 cloud += [from_log(t, names) for t, h in zip(result.record.thetas, result.record.holds) if h][:200]
     flat = [(kind, t, w, p) for kind, t, w, p in rows_in] + [("cloud", None, None, p) for p in cloud]
     print(f"judging {len(flat)} parameter sets on the held-out masses ...")
     verdicts = judge([p for *_, p in flat], plan.held_out, plan.base, 1.0, plan.judge_dt)
-    rows = [{"kind": kind, "tuner": t, "w_lag": w, "params": {k: float(v) for k, v in p.items()}, **v.row()}
-            for (kind, t, w, p), v in zip(flat, verdicts)]
+    rows = [
+        {"kind": kind, "tuner": t, "w_lag": w, "params": {k: float(v) for k, v in p.items()}, **v.row()}
+        for (kind, t, w, p), v in zip(flat, verdicts)
+    ]
     with Outputs() as out:
-        write_json(out.path(files["out"]), {"pareto": rows, "config": plan.describe(),
-                                            "held_out_masses": [float(m) for m in plan.held_out]})
+        write_json(
+            out.path(files["out"]),
+            {"pareto": rows, "config": plan.describe(), "held_out_masses": [float(m) for m in plan.held_out]},
+        )
         plot_pareto(rows, out.path(files["pareto"]))
     for r in rows:
         if r["kind"] == "front":
-            print(f"  {r['tuner']:<14} w_lag {r['w_lag']:>5g}: holds {'yes' if r['holds'] else 'NO ':>3}, "
-                  f"peak {r['peak_grip']:6.2f} N, lag {r['rms_lag_mm']:6.2f} mm")
+            print(
+                f"  {r['tuner']:<14} w_lag {r['w_lag']:>5g}: holds {'yes' if r['holds'] else 'NO ':>3}, "
+                f"peak {r['peak_grip']:6.2f} N, lag {r['rms_lag_mm']:6.2f} mm"
+            )
     print(f"wrote {files['out']} and {files['pareto']}")
     return 0

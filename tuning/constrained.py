@@ -50,8 +50,9 @@ def update(mult: Multipliers, g, growth: float = 10.0, shrink: float = 0.25, rho
     return Multipliers(lam, rho, violation)
 
 
-def solve(fun: Callable, x0, optimizer: optax.GradientTransformation, outer: int = 20, inner: int = 100,
-          rho: float = 1.0) -> tuple[jax.Array, Multipliers]:
+def solve(
+    fun: Callable, x0, optimizer: optax.GradientTransformation, outer: int = 20, inner: int = 100, rho: float = 1.0
+) -> tuple[jax.Array, Multipliers]:
     """Minimise f subject to g <= 0, where fun(x) -> (f, g) with g of shape (m,). For small problems.
 
     Each outer iteration runs `inner` optimiser steps on L, then updates the multipliers.

@@ -77,13 +77,31 @@ class Result(NamedTuple):
 
 
 def identity(tuner: Tuner, problem, starts, seed) -> dict:
-    return {"format": CHECKPOINT_FORMAT, "tuner": tuner.name, "settings": repr(tuner), "problem": repr(problem),
-            "starts": np.asarray(starts).tolist(), "seed": seed}
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "tuner": tuner.name,
+        "settings": repr(tuner),
+        "problem": repr(problem),
+        "starts": np.asarray(starts).tolist(),
+        "seed": seed,
+    }
 
 
-def run(tuner: Tuner, problem, base, starts: np.ndarray, seed: int = 0, *, budget: Budget = Budget(),
-        checkpoint: str | None = None, resume: bool = False, progress: bool = False, total: int | None = None,
-        evaluator: Evaluator | None = None, on_step=None) -> Result:
+def run(
+    tuner: Tuner,
+    problem,
+    base,
+    starts: np.ndarray,
+    seed: int = 0,
+    *,
+    budget: Budget = Budget(),
+    checkpoint: str | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    total: int | None = None,
+    evaluator: Evaluator | None = None,
+    on_step=None,
+) -> Result:
     """Run (or resume) one tuner until it finishes or the budget is spent.
 
     With `checkpoint`, the log is saved atomically after every evaluation; `resume=True` continues
@@ -110,8 +128,16 @@ def run(tuner: Tuner, problem, base, starts: np.ndarray, seed: int = 0, *, budge
             clock.append((wall, used))
             record.add(query, evaluation, wall, used)
             elapsed, trajectories = wall, used
-    bar = tqdm(total=total, initial=len(log), desc=f"tune ({tuner.name})", unit="step", disable=not progress,
-               dynamic_ncols=True, mininterval=0.5, file=sys.stderr)
+    bar = tqdm(
+        total=total,
+        initial=len(log),
+        desc=f"tune ({tuner.name})",
+        unit="step",
+        disable=not progress,
+        dynamic_ncols=True,
+        mininterval=0.5,
+        file=sys.stderr,
+    )
     while True:
         if budget.seconds is not None and elapsed >= budget.seconds:
             break
@@ -139,8 +165,12 @@ def run(tuner: Tuner, problem, base, starts: np.ndarray, seed: int = 0, *, budge
 
 
 def _same(a: Query, b: Query) -> bool:
-    return (a.derivative == b.derivative and a.mode == b.mode and np.array_equal(a.thetas, b.thetas)
-            and np.array_equal(a.masses, b.masses))
+    return (
+        a.derivative == b.derivative
+        and a.mode == b.mode
+        and np.array_equal(a.thetas, b.thetas)
+        and np.array_equal(a.masses, b.masses)
+    )
 
 
 def save_checkpoint(path: str, ident: dict, log, clock) -> None:
@@ -157,7 +187,9 @@ def load_checkpoint(path: str, ident: dict) -> dict:
             saved = pickle.load(f)
         saved["identity"], saved["log"], saved["clock"]
     except Exception as error:  # a foreign or damaged file: say so rather than crash
-        raise InputError(f"{path} is not a coopjax tuning checkpoint ({type(error).__name__}): delete it", "resume") from None
+        raise InputError(
+            f"{path} is not a coopjax tuning checkpoint ({type(error).__name__}): delete it", "resume"
+        ) from None
     if saved["identity"] != ident:
         raise InputError(f"{path} belongs to a run with other options; use the same flags, or delete it", "resume")
     return saved

@@ -27,20 +27,29 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
     def outputs(thetas, masses, base):
         t = terms(thetas, base, problem, masses)
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, rms_lag=m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
-                    finite=m.finite.astype(thetas.dtype))
+        return dict(
+            f=t.f,
+            c=t.c,
+            peak=m.peak_grip,
+            rms_lag=m.rms_lag,
+            min_grip=m.min_grip,
+            min_swi=m.min_swi,
+            finite=m.finite.astype(thetas.dtype),
+        )
 
     if derivative is None:
         return jax.jit(lambda thetas, masses, base, weights: outputs(thetas, masses, base))
 
     if derivative == "jacobian":
+
         def jacobian(thetas, masses, base, weights):
             # The candidates are independent, so one tangent per parameter column gives every
             # candidate's column at once; all n tangents go through one forward pass (vmap).
             n = thetas.shape[1]
             basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
-            out, tangents = jax.vmap(lambda v: jax.jvp(lambda th: outputs(th, masses, base), (thetas,), (v,)),
-                                     out_axes=(None, 0))(basis)
+            out, tangents = jax.vmap(
+                lambda v: jax.jvp(lambda th: outputs(th, masses, base), (thetas,), (v,)), out_axes=(None, 0)
+            )(basis)
             out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "rms_lag", "min_swi")}
             return out
 
@@ -52,18 +61,29 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
 
     def pack(t, L, grad):
         m = t.metrics
-        return dict(f=t.f, c=t.c, peak=m.peak_grip, rms_lag=m.rms_lag, min_grip=m.min_grip, min_swi=m.min_swi,
-                    finite=m.finite, value=L, gradient=grad)
+        return dict(
+            f=t.f,
+            c=t.c,
+            peak=m.peak_grip,
+            rms_lag=m.rms_lag,
+            min_grip=m.min_grip,
+            min_swi=m.min_swi,
+            finite=m.finite,
+            value=L,
+            gradient=grad,
+        )
 
     if mode == "forward":
+
         def forward(thetas, masses, base, weights):
             # One tangent per parameter column of every candidate, one after another (`lax.map`):
             # vmapped, these tangents ran 1.8x slower (their working set left the cache).
             n = thetas.shape[1]
             basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
             L, t = value(thetas, masses, base, weights)
-            tangents = jax.lax.map(lambda v: jax.jvp(lambda th: value(th, masses, base, weights)[0], (thetas,), (v,))[1],
-                                   basis)
+            tangents = jax.lax.map(
+                lambda v: jax.jvp(lambda th: value(th, masses, base, weights)[0], (thetas,), (v,))[1], basis
+            )
             return pack(t, L, tangents.T)
 
         return jax.jit(forward)
@@ -71,7 +91,8 @@ def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
     def reverse(thetas, masses, base, weights):
         # The candidates are separable (L_c depends on theta_c alone): the gradient of their sum.
         (_, (L, t)), grad = jax.value_and_grad(
-            lambda th: (lambda L, t: (L.sum(), (L, t)))(*value(th, masses, base, weights)), has_aux=True)(thetas)
+            lambda th: (lambda L, t: (L.sum(), (L, t)))(*value(th, masses, base, weights)), has_aux=True
+        )(thetas)
         return pack(t, L, grad)
 
     return jax.jit(reverse)
@@ -90,8 +111,13 @@ class Evaluator:
     def _executable(self, query: Query, args):
         key = (query.derivative, query.mode, np.shape(query.thetas), np.shape(query.masses))
         if key not in self.compiled:
-            fn = _function(self.problem, query.derivative, query.mode if query.derivative == "gradient" else None,
-                           self.scalar if query.derivative == "gradient" else None, self.checkpoint)
+            fn = _function(
+                self.problem,
+                query.derivative,
+                query.mode if query.derivative == "gradient" else None,
+                self.scalar if query.derivative == "gradient" else None,
+                self.checkpoint,
+            )
             start = time.perf_counter()
             self.compiled[key] = fn.lower(*args).compile()
             self.compile_s += time.perf_counter() - start
@@ -118,8 +144,16 @@ class Evaluator:
         jac = None
         if "jacobian" in out:
             jac = {k: np.asarray(v) for k, v in out["jacobian"].items()}
-        return Evaluation(f=f, c=c, peak=np.asarray(out["peak"]).reshape(C, M),
-                          rms_lag=np.asarray(out["rms_lag"]).reshape(C, M), min_grip=min_grip, valid=valid, holds=holds,
-                          min_swi=np.asarray(out["min_swi"]).reshape(C, M),
-                          value=None if "value" not in out else np.asarray(out["value"]),
-                          gradient=None if "gradient" not in out else np.asarray(out["gradient"]), jacobian=jac)
+        return Evaluation(
+            f=f,
+            c=c,
+            peak=np.asarray(out["peak"]).reshape(C, M),
+            rms_lag=np.asarray(out["rms_lag"]).reshape(C, M),
+            min_grip=min_grip,
+            valid=valid,
+            holds=holds,
+            min_swi=np.asarray(out["min_swi"]).reshape(C, M),
+            value=None if "value" not in out else np.asarray(out["value"]),
+            gradient=None if "gradient" not in out else np.asarray(out["gradient"]),
+            jacobian=jac,
+        )

@@ -65,8 +65,14 @@ def judge_config(dt: float = JUDGE_DT) -> Config:
     return Config("carry", switch="hard", contact="unilateral", integrator="filippov", dt=dt, dtype="float64")
 
 
-def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Params | None = None, w_lag: float = 1.0,
-          dt: float = JUDGE_DT, check_step: bool = True):
+def judge(
+    values: dict[str, float] | list[dict[str, float]],
+    masses,
+    base: Params | None = None,
+    w_lag: float = 1.0,
+    dt: float = JUDGE_DT,
+    check_step: bool = True,
+):
     """Judge one parameter set (or a list of them) with the hard model on `masses`, in float64.
 
     Args:
@@ -94,12 +100,18 @@ def judge(values: dict[str, float] | list[dict[str, float]], masses, base: Param
     config = judge_config(dt).validate()
     out = evaluation.evaluate(params, config, check_step=check_step, block=JUDGE_BLOCK)
     F_lim = float(np.asarray(base.F_lim).min())
-    verdicts = [_verdict({k: v[g * M:(g + 1) * M] for k, v in out.items()}, w_lag, F_lim) for g in range(G)]
+    verdicts = [_verdict({k: v[g * M : (g + 1) * M] for k, v in out.items()}, w_lag, F_lim) for g in range(G)]
     return verdicts if many else verdicts[0]
 
 
-def select(candidates: list[dict], masses, base: Params | None = None, w_lag: float = 1.0,
-           dt: float = JUDGE_DT, check_step: bool = True) -> tuple[int, list[Verdict]]:
+def select(
+    candidates: list[dict],
+    masses,
+    base: Params | None = None,
+    w_lag: float = 1.0,
+    dt: float = JUDGE_DT,
+    check_step: bool = True,
+) -> tuple[int, list[Verdict]]:
     """The candidate a hard-model validation prefers: it holds the grip at every validation mass and
     then has the lowest objective (ties: the earlier candidate). Returns its index and all verdicts.
 
@@ -139,7 +151,9 @@ def _verdict(m: dict, w_lag: float, F_lim: float) -> Verdict:
         finite=bool(np.all(m["finite"] > 0.5)),
         measured=measured,
         holds=measured and min_grip >= F_lim - HOLD_TOLERANCE and not artefact,
-        step_error=float(np.nanmax(m["step_error"])) if checked and np.isfinite(m["step_error"]).any() else float("nan"),
+        step_error=float(np.nanmax(m["step_error"]))
+        if checked and np.isfinite(m["step_error"]).any()
+        else float("nan"),
         step_artefact=artefact,
         per_mass=per_mass,
     )

@@ -37,7 +37,7 @@ def plot_history(history: dict, path: str, title: str) -> None:
     holds = np.asarray(history["holds"], bool)
     for k in range(f.shape[1]):
         label = f"lane {k}" if lanes else f"start {k}" + (" (Table 1)" if k == 0 else "")
-        line, = a.semilogy(steps, f[:, k], lw=1, label=label)
+        (line,) = a.semilogy(steps, f[:, k], lw=1, label=label)
         a.plot(steps[holds[:, k]], f[holds[:, k], k], ".", color=line.get_color(), ms=4)
         if lanes:
             b.plot(steps, right[:, k], lw=1, color=line.get_color())
@@ -49,8 +49,10 @@ def plot_history(history: dict, path: str, title: str) -> None:
     a.set_xlabel("step")
     if lanes:
         a.set_ylabel("merit: max peak + w_lag x max lag + penalties [N]")
-        a.set_title("merit per lane (dots: holds at every training mass;\na jump: the lane starts from a new screen point)",
-                    fontsize=10)
+        a.set_title(
+            "merit per lane (dots: holds at every training mass;\na jump: the lane starts from a new screen point)",
+            fontsize=10,
+        )
         b.set_ylabel("grip margin: least Filippov weight over the masses")
         b.axhline(history.get("margin_asked", [0.0])[0], color="0.3", ls="--", lw=1, label="the margin asked for")
         b.set_ylim(-0.05, 1.05)
@@ -74,8 +76,15 @@ def plot_traces(runs: dict, masses, F_lim: float, F_max: float, path: str) -> No
     """Grip forces (hard model) for each gain set in `runs` (label -> Trajectory over `masses`)."""
     plt = _pyplot()
     labels = list(runs)
-    fig, axes = plt.subplots(len(masses), len(labels), figsize=(5.5 * len(labels), 3.4 * len(masses)),
-                             sharex=True, sharey="row", constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(masses),
+        len(labels),
+        figsize=(5.5 * len(labels), 3.4 * len(masses)),
+        sharex=True,
+        sharey="row",
+        constrained_layout=True,
+        squeeze=False,
+    )
     for j, label in enumerate(labels):
         traj = runs[label]
         t = np.asarray(traj.t)
@@ -120,8 +129,11 @@ def plot_race(result: dict, path: str) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("wall time [s] (compilation excluded, reported apart)")
     ax.set_ylabel("validated objective: worst peak + w_lag x worst lag [N]")
-    ax.set_title(f"{len(result['names'])} parameters, seeds {result['seeds']}: each tuner's choice so far, judged on "
-                 "validation masses\n(no line yet: nothing that holds the grip at every validation mass)", fontsize=9)
+    ax.set_title(
+        f"{len(result['names'])} parameters, seeds {result['seeds']}: each tuner's choice so far, judged on "
+        "validation masses\n(no line yet: nothing that holds the grip at every validation mass)",
+        fontsize=9,
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     _save(fig, path)
@@ -142,22 +154,45 @@ def plot_pareto(rows: list[dict], path: str) -> None:
     y_max = 2 * max([r["peak_grip"] for r in tuned] or [100.0])
     shown = [r for r in held if r["rms_lag_mm"] <= x_max and r["peak_grip"] <= y_max]
     if cloud:
-        ax.scatter([r["rms_lag_mm"] for r in shown], [r["peak_grip"] for r in shown], marker="x", color="grey", s=14,
-                   label=f"candidates that held in training ({len(held)} of {len(cloud)} hold here, "
-                         f"{len(held) - len(shown)} off the axes)")
+        ax.scatter(
+            [r["rms_lag_mm"] for r in shown],
+            [r["peak_grip"] for r in shown],
+            marker="x",
+            color="grey",
+            s=14,
+            label=f"candidates that held in training ({len(held)} of {len(cloud)} hold here, "
+            f"{len(held) - len(shown)} off the axes)",
+        )
     for tuner, (color, marker) in style(fronts).items():
         pts = sorted((r for r in rows if r["tuner"] == tuner and r["kind"] == "front"), key=lambda r: r["rms_lag_mm"])
         ok = [r for r in pts if r["holds"]]
         if ok:
-            ax.plot([r["rms_lag_mm"] for r in ok], [r["peak_grip"] for r in ok], marker + "-", color=color,
-                    label=f"{tuner}, one run per lag weight")
+            ax.plot(
+                [r["rms_lag_mm"] for r in ok],
+                [r["peak_grip"] for r in ok],
+                marker + "-",
+                color=color,
+                label=f"{tuner}, one run per lag weight",
+            )
             for r in ok:
-                ax.annotate(f"w={r['w_lag']:g}", (r["rms_lag_mm"], r["peak_grip"]), fontsize=7, xytext=(4, 4),
-                            textcoords="offset points", color=color)
+                ax.annotate(
+                    f"w={r['w_lag']:g}",
+                    (r["rms_lag_mm"], r["peak_grip"]),
+                    fontsize=7,
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                    color=color,
+                )
         lost = [r for r in pts if not r["holds"]]
         if lost:
-            ax.scatter([r["rms_lag_mm"] for r in lost], [r["peak_grip"] for r in lost], facecolors="none",
-                       edgecolors=color, marker=marker, label=f"{tuner}: loses the grip on a held-out mass")
+            ax.scatter(
+                [r["rms_lag_mm"] for r in lost],
+                [r["peak_grip"] for r in lost],
+                facecolors="none",
+                edgecolors=color,
+                marker=marker,
+                label=f"{tuner}: loses the grip on a held-out mass",
+            )
     ax.set_xlim(0, x_max)
     ax.set_ylim(0, y_max)
     ax.set_xlabel("worst-case RMS lag over held-out masses [mm]")

@@ -77,9 +77,12 @@ def check_tuned_names(names) -> tuple[str, ...]:
     for name in names:
         base, robot = split_name(name)
         if base not in CONTROLLER:
-            raise InputError(f"names: {name} is not a controller parameter; tune the gains (K_GP, K_GI, tau, G_e, "
-                             f"or per robot K_GP_L ...) or the impedance (M_c R_c K_c M_f R_f K_f); all: "
-                             f"{' '.join(CONTROLLER)}", "names")
+            raise InputError(
+                f"names: {name} is not a controller parameter; tune the gains (K_GP, K_GI, tau, G_e, "
+                f"or per robot K_GP_L ...) or the impedance (M_c R_c K_c M_f R_f K_f); all: "
+                f"{' '.join(CONTROLLER)}",
+                "names",
+            )
     if len(set(names)) != len(names):
         raise InputError("names: a parameter is named twice", "names")
     for name in names:
@@ -102,8 +105,13 @@ TRAINING_METRICS = ("min_grip", "peak_grip", "slip", "rms_lag", "min_swi")  # wh
 
 def training_config(switch: str = "hard", dt: float | None = None) -> Config:
     """The training runs: the hard model at the coarsest converged step, or a surrogate at its own."""
-    return Config("carry", switch=switch, dt=dt if dt is not None else (TRAIN_DT if switch == "hard" else SURROGATE_DT),
-                  dtype="float64", metrics=TRAINING_METRICS)
+    return Config(
+        "carry",
+        switch=switch,
+        dt=dt if dt is not None else (TRAIN_DT if switch == "hard" else SURROGATE_DT),
+        dtype="float64",
+        metrics=TRAINING_METRICS,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +149,9 @@ class Problem:
         if not isinstance(self.config, Config):
             raise InputError(f"config must be a coopjax.Config, got {type(self.config).__name__}", "config")
         if self.config.scenario != "carry":
-            raise InputError(f"the tuning problem is posed on the carry scenario, not {self.config.scenario!r}", "config")
+            raise InputError(
+                f"the tuning problem is posed on the carry scenario, not {self.config.scenario!r}", "config"
+            )
         if self.switch not in SWITCHES:
             raise InputError(f"switch must be one of {', '.join(SWITCHES)}, not {self.switch!r}", "switch")
         if self.aggregate not in AGGREGATES:
@@ -179,7 +189,9 @@ class Problem:
 def check_mass_range(masses) -> None:
     kind, low, high = masses
     if kind not in ("uniform", "loguniform") or not (math.isfinite(low) and math.isfinite(high) and 0 < low < high):
-        raise InputError(f"masses {kind}:{low:g}:{high:g}: need loguniform or uniform, and 0 < LOW < HIGH (kg)", "masses")
+        raise InputError(
+            f"masses {kind}:{low:g}:{high:g}: need loguniform or uniform, and 0 < LOW < HIGH (kg)", "masses"
+        )
 
 
 def grid(masses, count: int, midpoints: bool = False) -> np.ndarray:
@@ -280,8 +292,9 @@ def terms(theta, base: Params, problem: Problem, masses, checkpoint: bool | str 
     return Terms(f, c, jax.tree_util.tree_map(lambda x: x.reshape(K, M), m))
 
 
-def starting_points(problem: Problem, base: Params, first: dict[str, float], count: int, spread: float,
-                    seed: int) -> np.ndarray:
+def starting_points(
+    problem: Problem, base: Params, first: dict[str, float], count: int, spread: float, seed: int
+) -> np.ndarray:
     """The first start (log of `first`, clipped to the box), then `count - 1` log-uniform draws within
     x/÷ e^spread of it, each stable at the training step: a draw whose linearised loop needs dt below
     1.5 x the training step is drawn again (up to 50 rounds), so no start begins where its very first
@@ -300,5 +313,7 @@ def starting_points(problem: Problem, base: Params, first: dict[str, float], cou
         limit, _ = stable_dt(params, problem.config)
         points += [d for d, ok in zip(draws, limit >= 1.5 * problem.dt) if ok]
     if len(points) < count:
-        raise InputError(f"found only {len(points)} stable starting points in 50 rounds; try a smaller spread", "spread")
+        raise InputError(
+            f"found only {len(points)} stable starting points in 50 rounds; try a smaller spread", "spread"
+        )
     return np.stack(points[:count])

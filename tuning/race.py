@@ -50,8 +50,19 @@ def time_to_reach(curve, target: float) -> float:
 BUDGETS = ("time", "trajectories")
 
 
-def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=print, progress: bool = False,
-        judge_dt: float | None = None, budget: str = "time", target: str | None = None) -> dict:
+def run(
+    tuners: dict,
+    reference: str,
+    problem,
+    base,
+    starts_for,
+    seeds,
+    log=print,
+    progress: bool = False,
+    judge_dt: float | None = None,
+    budget: str = "time",
+    target: str | None = None,
+) -> dict:
     """Race `tuners` (name -> tuner) over `seeds`; `starts_for(seed)` gives the (K, n) starts.
     The reference tuner runs to its own end; every other tuner gets its wall time (`budget="time"`) or
     as many simulated trajectories (`"trajectories"`). Times to reach are to `target`'s final
@@ -72,8 +83,9 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
                 limit = driver.Budget(seconds=results[reference].elapsed)
             else:
                 limit = driver.Budget(trajectories=results[reference].trajectories)
-            results[name] = driver.run(tuners[name], problem, base, starts, seed, budget=limit,
-                                       progress=progress and name == reference)
+            results[name] = driver.run(
+                tuners[name], problem, base, starts, seed, budget=limit, progress=progress and name == reference
+            )
             compile_s[name] = max(compile_s.get(name, 0.0), results[name].compile_s)
         budget_s = results[reference].elapsed
         # Validate every tuner's running choices and final candidates in one batch.
@@ -98,26 +110,50 @@ def run(tuners: dict, reference: str, problem, base, starts_for, seeds, log=prin
                 chosen[name], points = None, []
             curves[name] = running_min(points)
         final = {name: (c[-1][1] if c else math.inf) for name, c in curves.items()}
-        judged = {name: judge(p, held_out, base, problem.w_lag, **judging).row() if p else None
-                  for name, p in chosen.items()}
+        judged = {
+            name: judge(p, held_out, base, problem.w_lag, **judging).row() if p else None for name, p in chosen.items()
+        }
         others = [n for n in order if n != reference]
         target_name = target if target in results else (others[0] if others else reference)
         reach = {name: time_to_reach(c, final[target_name]) for name, c in curves.items()}
-        row = {"seed": seed, "budget_s": budget_s, "curves": curves, "final": final, "target": target_name,
-               "time_to_target": reach, "chosen": chosen, "held_out": judged,
-               "evaluations": {name: len(r.record.f) for name, r in results.items()},
-               "trajectories": {name: r.trajectories for name, r in results.items()}}
+        row = {
+            "seed": seed,
+            "budget_s": budget_s,
+            "curves": curves,
+            "final": final,
+            "target": target_name,
+            "time_to_target": reach,
+            "chosen": chosen,
+            "held_out": judged,
+            "evaluations": {name: len(r.record.f) for name, r in results.items()},
+            "trajectories": {name: r.trajectories for name, r in results.items()},
+        }
         per_seed.append(row)
         g = judged[reference]
         if g:
-            log(f"seed {seed}: {reference}'s answer on the held-out masses: holds {'yes' if g['holds'] else 'NO'}, worst "
-                f"min grip {g['min_grip']:.3f} N, peak {g['peak_grip']:.2f} N, lag {g['rms_lag_mm']:.2f} mm")
-        log(f"seed {seed}: budget {budget_s:.1f} s; validated objective " + ", ".join(
-            f"{name} {final[name]:.2f} N" for name in order) + f"; time to {target_name}'s final: " + ", ".join(
-            f"{name} {_fmt_time(reach[name])}" for name in order))
-    return {"names": list(names), "seeds": list(seeds), "tuners": order, "reference": reference, "budget": budget,
-            "validation_masses": [float(m) for m in masses], "held_out_masses": [float(m) for m in held_out],
-            "compile_s": compile_s, "per_seed": per_seed, "summary": summary(per_seed, order)}
+            log(
+                f"seed {seed}: {reference}'s answer on the held-out masses: holds "
+                f"{'yes' if g['holds'] else 'NO'}, worst "
+                f"min grip {g['min_grip']:.3f} N, peak {g['peak_grip']:.2f} N, lag {g['rms_lag_mm']:.2f} mm"
+            )
+        log(
+            f"seed {seed}: budget {budget_s:.1f} s; validated objective "
+            + ", ".join(f"{name} {final[name]:.2f} N" for name in order)
+            + f"; time to {target_name}'s final: "
+            + ", ".join(f"{name} {_fmt_time(reach[name])}" for name in order)
+        )
+    return {
+        "names": list(names),
+        "seeds": list(seeds),
+        "tuners": order,
+        "reference": reference,
+        "budget": budget,
+        "validation_masses": [float(m) for m in masses],
+        "held_out_masses": [float(m) for m in held_out],
+        "compile_s": compile_s,
+        "per_seed": per_seed,
+        "summary": summary(per_seed, order),
+    }
 
 
 def summary(per_seed: list[dict], order) -> dict:
@@ -126,9 +162,13 @@ def summary(per_seed: list[dict], order) -> dict:
     for name in order:
         finals = np.array([r["final"][name] for r in per_seed])
         reach = np.array([r["time_to_target"][name] for r in per_seed])
-        out[name] = {"final_median": float(np.median(finals)), "final_worst": float(np.max(finals)),
-                     "time_to_target_median": float(np.median(reach)), "time_to_target_worst": float(np.max(reach)),
-                     "holds_on_seeds": int(np.isfinite(finals).sum())}
+        out[name] = {
+            "final_median": float(np.median(finals)),
+            "final_worst": float(np.max(finals)),
+            "time_to_target_median": float(np.median(reach)),
+            "time_to_target_worst": float(np.max(reach)),
+            "holds_on_seeds": int(np.isfinite(finals).sum()),
+        }
     out["budget_s_median"] = float(np.median([r["budget_s"] for r in per_seed]))
     if per_seed:  # seeds on which the reference ends strictly better than the target
         ref, tgt = order[0], per_seed[0]["target"]
@@ -144,18 +184,29 @@ def print_summary(result: dict) -> None:
     s, order = result["summary"], result["tuners"]
     target = result["per_seed"][0]["target"] if result["per_seed"] else order[0]
     kind = "wall time" if result.get("budget", "time") == "time" else "simulated trajectories (its wall time"
-    print(f"\nrace over seeds {result['seeds']} ({len(result['names'])} parameters; each tuner gets {result['reference']}'s "
-          f"{kind}, median {s['budget_s_median']:.1f} s{')' if kind != 'wall time' else ''}; compile apart: "
-          + ", ".join(f"{k} {v:.1f} s" for k, v in result["compile_s"].items()) + ")")
-    print(f"{'tuner':<15} {'final objective [N], median':>28} {'worst':>8} {'holds':>6} "
-          f"{'time to ' + target + ' final, median':>32} {'worst':>8}")
+    print(
+        f"\nrace over seeds {result['seeds']} ({len(result['names'])} parameters; each tuner gets "
+        f"{result['reference']}'s "
+        f"{kind}, median {s['budget_s_median']:.1f} s{')' if kind != 'wall time' else ''}; compile apart: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in result["compile_s"].items())
+        + ")"
+    )
+    print(
+        f"{'tuner':<15} {'final objective [N], median':>28} {'worst':>8} {'holds':>6} "
+        f"{'time to ' + target + ' final, median':>32} {'worst':>8}"
+    )
     for name in order:
         r = s[name]
-        print(f"{name:<15} {r['final_median']:>28.2f} {r['final_worst']:>8.2f} {r['holds_on_seeds']:>4}/{len(result['seeds'])} "
-              f"{_fmt_time(r['time_to_target_median']):>32} {_fmt_time(r['time_to_target_worst']):>8}")
+        print(
+            f"{name:<15} {r['final_median']:>28.2f} {r['final_worst']:>8.2f} "
+            f"{r['holds_on_seeds']:>4}/{len(result['seeds'])} "
+            f"{_fmt_time(r['time_to_target_median']):>32} {_fmt_time(r['time_to_target_worst']):>8}"
+        )
     ref, tgt = s[result["reference"]]["time_to_target_median"], s[target]["time_to_target_median"]
     if target != result["reference"]:
         verdict = "less" if ref < tgt else "NOT less"
-        print(f"on the median over seeds {result['reference']} reaches {target}'s final validated objective in {verdict} "
-              f"wall time than {target} ({_fmt_time(ref)} against {_fmt_time(tgt)}); it ends better than {target} on "
-              f"{s.get('reference_better_on_seeds', 0)} of {len(result['seeds'])} seeds")
+        print(
+            f"on the median over seeds {result['reference']} reaches {target}'s final validated objective in {verdict} "
+            f"wall time than {target} ({_fmt_time(ref)} against {_fmt_time(tgt)}); it ends better than {target} on "
+            f"{s.get('reference_better_on_seeds', 0)} of {len(result['seeds'])} seeds"
+        )

@@ -73,8 +73,11 @@ def main(argv=None) -> int:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
         kept = interrupts.account()
-        print(f"coopjax: error: no space left on device ({error.filename or 'writing'}); no partial output was left"
-              + (f"; {kept}" if kept else ""), file=sys.stderr)
+        print(
+            f"coopjax: error: no space left on device ({error.filename or 'writing'}); no partial output was left"
+            + (f"; {kept}" if kept else ""),
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     except KeyboardInterrupt:  # only in-process (tests); the console script's interrupts never raise
         kept = interrupts.account()

@@ -45,8 +45,10 @@ def describe(environ=os.environ) -> str:
         return f"Compiled programs are kept in JAX's cache, {environ['JAX_COMPILATION_CACHE_DIR']}."
     if folder is None:
         return f"The compile cache is off ({ENV} is empty): every run compiles afresh."
-    return (f"Compiled programs are kept in {folder} for later runs, a subfolder per machine and jax build "
-            f"({ENV}=FOLDER moves the cache, {ENV}= turns it off).")
+    return (
+        f"Compiled programs are kept in {folder} for later runs, a subfolder per machine and jax build "
+        f"({ENV}=FOLDER moves the cache, {ENV}= turns it off)."
+    )
 
 
 def machine_tag() -> str:
@@ -85,10 +87,13 @@ def enable(environ=os.environ) -> str | None:
             raise PermissionError(13, "not writable")
     except OSError as error:
         if chosen:
-            raise InputError(f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
-                             f"writable folder, or set {ENV}= (empty) to run without it") from None
-        print(f"coopjax: note: no compile cache ({shared}: {error.strerror}); every run compiles afresh",
-              file=sys.stderr)
+            raise InputError(
+                f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
+                f"writable folder, or set {ENV}= (empty) to run without it"
+            ) from None
+        print(
+            f"coopjax: note: no compile cache ({shared}: {error.strerror}); every run compiles afresh", file=sys.stderr
+        )
         return None
     import jax
 

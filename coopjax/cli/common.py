@@ -51,14 +51,23 @@ def config_arguments(parser: argparse.ArgumentParser, defaults: dict | None = No
         if default is not None:
             text += f" (default: {default:g})" if isinstance(default, float) else f" (default: {default})"
         kind = float if isinstance(f.default, float) or f.name in ("T", "gamma_min") else str
-        group.add_argument(flag, dest=f.name, type=kind, default=default, help=text,
-                           metavar=f.name.upper() if kind is str else "S" if f.name in ("dt", "T") else "X")
+        group.add_argument(
+            flag,
+            dest=f.name,
+            type=kind,
+            default=default,
+            help=text,
+            metavar=f.name.upper() if kind is str else "S" if f.name in ("dt", "T") else "X",
+        )
 
 
 def config_from(args) -> Config:
     """The `Config` the flags describe, validated."""
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(Config)
-              if f.metadata.get("flag") and hasattr(args, f.name)}
+    values = {
+        f.name: getattr(args, f.name)
+        for f in dataclasses.fields(Config)
+        if f.metadata.get("flag") and hasattr(args, f.name)
+    }
     values["dtype"] = "float64" if getattr(args, "x64", False) else "float32"
     return Config(**values).validate()
 
@@ -114,7 +123,7 @@ def message(error: InputError, parser: argparse.ArgumentParser | None = None) ->
         flag = getattr(parser, "field_flags", {}).get(field, flag_of(field))
         known = {s for a in _all_actions(parser) for s in a.option_strings}
         if flag in known and (text.startswith(field + " ") or text.startswith(field + ":")):
-            text = flag + text[len(field):]
+            text = flag + text[len(field) :]
     return text
 
 

@@ -9,7 +9,15 @@ import numpy as np
 
 from coopjax import model
 from coopjax.cli import interrupts
-from coopjax.cli.common import EXIT_FAILED, PLOT_FORMATS, BadInput, assignments, check_output, config_arguments, config_from
+from coopjax.cli.common import (
+    EXIT_FAILED,
+    PLOT_FORMATS,
+    BadInput,
+    assignments,
+    check_output,
+    config_arguments,
+    config_from,
+)
 from coopjax.config import record_size, step_size_note
 from coopjax.io import Outputs, write_table
 from coopjax.plotting import plot_run
@@ -21,19 +29,40 @@ RECORD_EVERY_S = 0.01  # the CSV's default spacing
 
 
 def add_parser(sub):
-    p = sub.add_parser(NAME, help="run one closed-loop simulation, write its trajectory as CSV and optionally plot it",
-                       description="Run one closed-loop simulation from rest and write a decimated trajectory.")
-    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="fix a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; a per-robot name wins "
-                   "over the shared one; `coopjax params` lists the names)")
+    p = sub.add_parser(
+        NAME,
+        help="run one closed-loop simulation, write its trajectory as CSV and optionally plot it",
+        description="Run one closed-loop simulation from rest and write a decimated trajectory.",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="fix a parameter, e.g. --set M_b=2.5 or --set K_GP_L=0.3 (repeatable; a per-robot name wins "
+        "over the shared one; `coopjax params` lists the names)",
+    )
     config_arguments(p, defaults={"scenario": "paper"})
-    p.add_argument("--every", type=int, default=None, help="write every N-th step to the CSV (default: every 10 ms, "
-                   "or more often to give a short run a hundred rows)")
-    p.add_argument("--out", default="run.csv", help="trajectory CSV (default: run.csv). Columns: t [s]; F_L, F_R "
-                   "[N]; gamma_L, gamma_R [1]; w_L, w_R [1]; x_ref_L, x_ref_R [m]; then the 20 states (x_* [m], "
-                   "v_* [m/s], q_c [m], Z [N s], Y_e [m s])")
-    p.add_argument("--plot", default=None, metavar="FIG.png", help="also draw grip forces, gamma and positions "
-                   "(from every step, with the located peak marked)")
+    p.add_argument(
+        "--every",
+        type=int,
+        default=None,
+        help="write every N-th step to the CSV (default: every 10 ms, "
+        "or more often to give a short run a hundred rows)",
+    )
+    p.add_argument(
+        "--out",
+        default="run.csv",
+        help="trajectory CSV (default: run.csv). Columns: t [s]; F_L, F_R "
+        "[N]; gamma_L, gamma_R [1]; w_L, w_R [1]; x_ref_L, x_ref_R [m]; then the 20 states (x_* [m], "
+        "v_* [m/s], q_c [m], Z [N s], Y_e [m s])",
+    )
+    p.add_argument(
+        "--plot",
+        default=None,
+        metavar="FIG.png",
+        help="also draw grip forces, gamma and positions (from every step, with the located peak marked)",
+    )
     return p
 
 
@@ -49,17 +78,21 @@ def run(args) -> int:
     if args.every is not None and args.every < 1:
         raise BadInput(f"--every is {args.every}: it must be a whole number of steps, at least 1")
     if args.every is not None and args.every > n:
-        raise BadInput(f"--every {args.every} is more than the run's {n} steps: nothing would be recorded after "
-                       f"t = 0 (use --every <= {n})")
+        raise BadInput(
+            f"--every {args.every} is more than the run's {n} steps: nothing would be recorded after "
+            f"t = 0 (use --every <= {n})"
+        )
     # By default every 10 ms, but at least a hundred records (a short run is recorded at every step).
     every = args.every if args.every is not None else max(1, min(int(round(RECORD_EVERY_S / config.dt)), n // 100))
     # A plot is drawn from every step (a decimated record can hide an impact's spike); the CSV takes
     # every `every`-th. Without a plot, only what the CSV needs is recorded.
     record = 1 if args.plot is not None else every
     if record_size(config, record, 1) > memory_limit():
-        raise BadInput(f"recording {'every step (for --plot)' if record == 1 else f'every {every} steps'} of {n} "
-                       f"needs more than half of this machine's memory: "
-                       + ("drop --plot or run a shorter --T" if record == 1 else "use a larger --every or a shorter --T"))
+        raise BadInput(
+            f"recording {'every step (for --plot)' if record == 1 else f'every {every} steps'} of {n} "
+            f"needs more than half of this machine's memory: "
+            + ("drop --plot or run a shorter --T" if record == 1 else "use a larger --every or a shorter --T")
+        )
     interrupts.report_with(lambda: None)
     solution = simulate(params, config, every=record)
     traj = jax.tree_util.tree_map(lambda x: x[:: every // record], solution.trajectory)
@@ -88,8 +121,11 @@ def run(args) -> int:
         print(note)
     print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot is not None else ""))
     if not bool(m.finite):
-        print(f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s (values after that are NaN); "
-              "try a smaller --dt", file=sys.stderr)
+        print(
+            f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s (values after that are NaN); "
+            "try a smaller --dt",
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     return 0
 
@@ -97,8 +133,13 @@ def run(args) -> int:
 def summary(m) -> str:
     """The metrics in one line, each with its unit; a metric whose window the scenario lacks is left out."""
     parts = []
-    for name, label, unit in (("min_grip", "min grip", "N"), ("peak_grip", "peak grip", "N"), ("slip", "slip", "N^2"),
-                              ("crush", "crush", "N^2"), ("rms_lag", "RMS lag", "m")):
+    for name, label, unit in (
+        ("min_grip", "min grip", "N"),
+        ("peak_grip", "peak grip", "N"),
+        ("slip", "slip", "N^2"),
+        ("crush", "crush", "N^2"),
+        ("rms_lag", "RMS lag", "m"),
+    ):
         if name not in m._fields:
             continue
         value = float(getattr(m, name))

@@ -26,31 +26,50 @@ def column_help() -> str:
 
 def add_parser(sub):
     p = sub.add_parser(
-        NAME, help="run many parameter sets (Monte-Carlo, grid or a table) and write one row of results each",
+        NAME,
+        help="run many parameter sets (Monte-Carlo, grid or a table) and write one row of results each",
         description="Sweep the closed loop over parameter sets, sharded over this machine's CPU cores, in resumable "
         "chunks. DIST is uniform:a:b, loguniform:a:b, normal:mean:sd, choice:v1,v2,... or grid:a:b:k (grid axes form "
         "a full factorial and imply --n). Table columns: sample; the varied parameters (units: `coopjax params`); "
-        + column_help() + ".",
+        + column_help()
+        + ".",
     )
     p.add_argument("--n", type=int, default=None, help="number of samples (implied by grid axes or --from)")
     p.add_argument("--vary", action="append", default=[], metavar="NAME=DIST", help="a varied parameter (repeatable)")
-    p.add_argument("--from", dest="from_file", default=None, metavar="TABLE",
-                   help="parameter sets from a CSV or Parquet table, one row each (a sweep's own table works)")
-    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="fix a parameter, e.g. --set G_e=500 (repeatable; a per-robot name wins over the shared one)")
+    p.add_argument(
+        "--from",
+        dest="from_file",
+        default=None,
+        metavar="TABLE",
+        help="parameter sets from a CSV or Parquet table, one row each (a sweep's own table works)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="fix a parameter, e.g. --set G_e=500 (repeatable; a per-robot name wins over the shared one)",
+    )
     config_arguments(p)
-    p.add_argument("--check-step", action="store_true",
-                   help="run every row again at dt/2 and mark rows whose min grip, peak or lag move by more than the "
-                        "accuracy tolerances (0.05 N, 2 %%, 2 %%) as status step_artefact, with a step_error column; "
-                        "triples the cost")
+    p.add_argument(
+        "--check-step",
+        action="store_true",
+        help="run every row again at dt/2 and mark rows whose min grip, peak or lag move by more than the "
+        "accuracy tolerances (0.05 N, 2 %%, 2 %%) as status step_artefact, with a step_error column; "
+        "triples the cost",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--chunk", type=int, default=16384, help="samples per saved chunk (default 16384)")
     p.add_argument("--devices", type=int, default=None, help="CPU devices to shard over (default: one per core)")
     p.add_argument("--out", default="sweep.csv", help="sweep.csv or sweep.parquet (default sweep.csv)")
     p.add_argument("--resume", action="store_true", help="finish an interrupted sweep with the same options")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--coordinator", default=os.environ.get("COOPJAX_COORDINATOR"), metavar="HOST:PORT",
-                   help="jax.distributed coordinator (or COOPJAX_COORDINATOR)")
+    p.add_argument(
+        "--coordinator",
+        default=os.environ.get("COOPJAX_COORDINATOR"),
+        metavar="HOST:PORT",
+        help="jax.distributed coordinator (or COOPJAX_COORDINATOR)",
+    )
     p.add_argument("--num-processes", type=int, default=None, help="number of processes (or COOPJAX_NUM_PROCESSES)")
     p.add_argument("--process-id", type=int, default=None, help="this process, 0 to N-1 (or COOPJAX_PROCESS_ID)")
     return p
@@ -85,7 +104,9 @@ def run(args) -> int:
     if any(v is not None for v in distributed) and not all(v is not None for v in distributed):
         raise BadInput("--coordinator, --num-processes and --process-id go together")
     if args.num_processes is not None and not (args.num_processes >= 1 and 0 <= args.process_id < args.num_processes):
-        raise BadInput(f"--process-id {args.process_id} must be between 0 and --num-processes - 1 = {args.num_processes - 1}")
+        raise BadInput(
+            f"--process-id {args.process_id} must be between 0 and --num-processes - 1 = {args.num_processes - 1}"
+        )
     if args.devices is not None and args.devices < 1:
         raise BadInput(f"--devices is {args.devices}: it must be at least 1")
     if args.chunk < 1:
@@ -96,7 +117,9 @@ def run(args) -> int:
         try:
             import pyarrow  # noqa: F401
         except ImportError:
-            raise BadInput("writing Parquet needs pyarrow: pip install 'coopjax[sweep]', or use --out sweep.csv") from None
+            raise BadInput(
+                "writing Parquet needs pyarrow: pip install 'coopjax[sweep]', or use --out sweep.csv"
+            ) from None
 
     # Set here, before anything creates an array: JAX fixes the device count when its backend starts
     # (a caller that already started it keeps its own). No file is touched yet.
@@ -120,8 +143,9 @@ def run(args) -> int:
     if all(v is not None for v in distributed):  # before anything starts JAX's backend
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    spec = sweeps.make_spec(config, n=args.n, vary=vary, fixed=fixed, seed=args.seed, table=table,
-                             check_step=args.check_step)
+    spec = sweeps.make_spec(
+        config, n=args.n, vary=vary, fixed=fixed, seed=args.seed, table=table, check_step=args.check_step
+    )
     parts = args.out + ".parts"
     created = not os.path.exists(parts)
     interrupts.report_with(lambda: kept(parts, created))
@@ -141,8 +165,10 @@ def kept(parts: str, created: bool) -> str:
     this run made is removed, so that the same command can start again."""
     finished = sweeps.finished_parts(parts)
     if finished:
-        return (f"{finished} finished chunk{'s' if finished > 1 else ''} kept in {parts}; add --resume to the same "
-                "command to continue")
+        return (
+            f"{finished} finished chunk{'s' if finished > 1 else ''} kept in {parts}; add --resume to the same "
+            "command to continue"
+        )
     if created:
         shutil.rmtree(parts, ignore_errors=True)
         return "no chunk had finished, so nothing was kept"
@@ -152,11 +178,14 @@ def kept(parts: str, created: bool) -> str:
 def report(spec, columns, elapsed) -> None:
     status = np.asarray(columns["status"])
     trusted = status == Status.OK.label
-    flagged = ", ".join(f"{int((status == s.label).sum())} {s.label}" for s in list(Status)[1:]
-                        if (status == s.label).any())
-    print(f"coopjax sweep: {spec.n} samples of {spec.config.scenario} in {elapsed:.1f} s on {jax.device_count()} "
-          f"device(s) x {jax.process_count()} process(es); {int(trusted.sum())} ok"
-          + (f", flagged: {flagged} (see the status column)" if flagged else ""))
+    flagged = ", ".join(
+        f"{int((status == s.label).sum())} {s.label}" for s in list(Status)[1:] if (status == s.label).any()
+    )
+    print(
+        f"coopjax sweep: {spec.n} samples of {spec.config.scenario} in {elapsed:.1f} s on {jax.device_count()} "
+        f"device(s) x {jax.process_count()} process(es); {int(trusted.sum())} ok"
+        + (f", flagged: {flagged} (see the status column)" if flagged else "")
+    )
     for name in spec.config.metrics:
         v = np.asarray(columns[name])[trusted]
         v = v[np.isfinite(v)]

@@ -7,11 +7,36 @@
 - `loop.py`: `integrate`, the `lax.scan` over steps shared by every integrator.
 """
 
-from coopjax.integration.base import (INTEGRATORS, Integrator, Observation, Path, default_for, get, max_stable_dt,
-                                      register, rk4_amplification)
+from coopjax.integration.base import (
+    INTEGRATORS,
+    Integrator,
+    Observation,
+    Path,
+    default_for,
+    get,
+    max_stable_dt,
+    register,
+    rk4_amplification,
+)
 from coopjax.integration.loop import Settings, Solution, Trajectory, batched_leaves, integrate, step
 from coopjax.integration import filippov  # noqa: E402,F401  (registers itself, first: the CLI lists it first)
 from coopjax.integration.plain_rk4 import rk4
 
-__all__ = ["INTEGRATORS", "Integrator", "Observation", "Path", "Settings", "Solution", "Trajectory", "batched_leaves",
-           "default_for", "get", "integrate", "max_stable_dt", "register", "rk4", "rk4_amplification", "step"]
+__all__ = [
+    "INTEGRATORS",
+    "Integrator",
+    "Observation",
+    "Path",
+    "Settings",
+    "Solution",
+    "Trajectory",
+    "batched_leaves",
+    "default_for",
+    "get",
+    "integrate",
+    "max_stable_dt",
+    "register",
+    "rk4",
+    "rk4_amplification",
+    "step",
+]

@@ -102,8 +102,10 @@ def register(cls: type[Integrator]) -> type[Integrator]:
     """Class decorator: make an integrator known by its name. An incomplete one is refused here."""
     missing = [a for a in ("name", "switches") if not hasattr(cls, a)] + sorted(getattr(cls, "__abstractmethods__", ()))
     if not (inspect.isclass(cls) and issubclass(cls, Integrator)) or missing:
-        raise TypeError(f"{getattr(cls, '__name__', cls)!r} is not a complete coopjax Integrator: it must subclass "
-                        f"Integrator and define {', '.join(missing) or 'name, switches, step and observe'}")
+        raise TypeError(
+            f"{getattr(cls, '__name__', cls)!r} is not a complete coopjax Integrator: it must subclass "
+            f"Integrator and define {', '.join(missing) or 'name, switches, step and observe'}"
+        )
     if cls.name in INTEGRATORS and type(INTEGRATORS[cls.name]) is not cls:
         raise ValueError(f"an integrator named {cls.name!r} is already registered")
     INTEGRATORS[cls.name] = cls()
@@ -114,7 +116,9 @@ def get(name: str) -> Integrator:
     try:
         return INTEGRATORS[name]
     except (KeyError, TypeError):
-        raise InputError(f"unknown integrator {name!r}; choose one of: {', '.join(INTEGRATORS)}", "integrator") from None
+        raise InputError(
+            f"unknown integrator {name!r}; choose one of: {', '.join(INTEGRATORS)}", "integrator"
+        ) from None
 
 
 def default_for(switch: str) -> str:

@@ -201,10 +201,12 @@ def fractions(f: Fields, sigma_n, h):
     sd0, sd1 = f.sd0, f.sd1
     approach_from_below = sd0 * h > 0.0
     theta_below = jnp.where(
-        approach_from_below, jnp.clip(-sigma_n / jnp.where(approach_from_below, sd0 * h, 1.0), 0.0, 1.0), 1.0)
+        approach_from_below, jnp.clip(-sigma_n / jnp.where(approach_from_below, sd0 * h, 1.0), 0.0, 1.0), 1.0
+    )
     approach_from_above = -sd1 * h > 0.0
     theta_above = jnp.where(
-        approach_from_above, jnp.clip(sigma_n / jnp.where(approach_from_above, -sd1 * h, 1.0), 0.0, 1.0), 1.0)
+        approach_from_above, jnp.clip(sigma_n / jnp.where(approach_from_above, -sd1 * h, 1.0), 0.0, 1.0), 1.0
+    )
     return theta_below, theta_above
 
 
@@ -249,15 +251,22 @@ def aux(f: Fields, lam) -> model.Aux:
     """Signals at a point: w is the Filippov weight (the share of time the chattering switch is on),
     gamma and v_ref the matching time averages."""
     blend = lambda a, b: a + lam * (b - a)
-    return model.Aux(F=f.F, w=lam, gamma=blend(f.aux_off.gamma, f.aux_on.gamma), x_ref=f.aux_off.x_ref,
-                     v_ref=blend(f.aux_off.v_ref, f.aux_on.v_ref))
+    return model.Aux(
+        F=f.F,
+        w=lam,
+        gamma=blend(f.aux_off.gamma, f.aux_on.gamma),
+        x_ref=f.aux_off.x_ref,
+        v_ref=blend(f.aux_off.v_ref, f.aux_on.v_ref),
+    )
 
 
 def _rates(fs, body, sigma_n, h, overrides: Overrides, thetas) -> Rows:
     """The state's rates at one stage of a piece: each robot's rows weighted by its lambda."""
     free = (None, None) if overrides.free is None else overrides.free
-    return Rows(tuple(combine(fs[i], weight(fs[i], sigma_n[i], h, overrides.switch[i], thetas[i], free[i]))
-                      for i in range(2)), body)
+    return Rows(
+        tuple(combine(fs[i], weight(fs[i], sigma_n[i], h, overrides.switch[i], thetas[i], free[i])) for i in range(2)),
+        body,
+    )
 
 
 def _axpy(rows: Rows, c, k: Rows) -> Rows:
@@ -326,8 +335,9 @@ def plan(ps, rows: Rows, fs, body, remaining, touching, dt, options, last, kept)
         if options.contact == "bilateral":  # always in contact: no impacts
             hit = jnp.full_like(tau, jnp.inf)
         else:
-            hit = jnp.where(touching[i], jnp.inf,
-                            impact_time(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], body["v_o"]))
+            hit = jnp.where(
+                touching[i], jnp.inf, impact_time(ps[i], rows.robot(i), model.SIGNS[i], fs[i].off["v_r"], body["v_o"])
+            )
         times.append(jnp.minimum(tau, hit))
         switches.append(jnp.where(hit < tau, Switch.FREE, switch))
         impacts.append(hit <= tau)
@@ -396,8 +406,11 @@ def trial_crossing(g: Held, kelvin_end, F_lim, h, fresh) -> Event:
     up, down = g.off & (sigma_end > 0.0), g.on & (sigma_end < 0.0)
     kelvin = g.sigma_n + F_lim
     through_zero = g.in_contact & (F_lim > 0.0) & (kelvin * kelvin_end < 0.0)
-    tau = jnp.where(up, crossing(g.sigma_n, g.sd0, sigma_end, h),
-                    jnp.where(down, crossing(-g.sigma_n, -g.sd1, -sigma_end, h), jnp.inf))
+    tau = jnp.where(
+        up,
+        crossing(g.sigma_n, g.sd0, sigma_end, h),
+        jnp.where(down, crossing(-g.sigma_n, -g.sd1, -sigma_end, h), jnp.inf),
+    )
     sign = jnp.where(kelvin > 0.0, -1.0, 1.0)  # the Kelvin-Voigt force rising through 0 or falling
     tau0 = jnp.where(through_zero, crossing(sign * kelvin, sign * g.rate, sign * kelvin_end, h), jnp.inf)
     switch = jnp.where(tau0 < tau, Switch.FREE, jnp.where(g.off, Switch.OFF, Switch.ON))
@@ -414,14 +427,18 @@ def sliding_exit(slide: Slide, h) -> Event:
     down, up = slide.free & (end < 0.0), slide.free & (end > 1.0)
     denominator = jnp.where(down, start - end, jnp.where(up, end - start, 1.0))
     share = jnp.where(down, start, 1.0 - start) / jnp.where(down | up, denominator, 1.0)
-    return Event(down | up, jnp.where(down | up, jnp.clip(share, 0.0, 1.0) * h, jnp.inf),
-                 jnp.where(up, Switch.ON, Switch.OFF))
+    return Event(
+        down | up, jnp.where(down | up, jnp.clip(share, 0.0, 1.0) * h, jnp.inf), jnp.where(up, Switch.ON, Switch.OFF)
+    )
 
 
 def first_event(crossed: Event, exited: Event) -> Event:
     """One robot's earlier event of the two a piece can reveal (an exit wins where it is strictly first)."""
-    return Event(crossed.found | exited.found, jnp.minimum(jnp.where(crossed.found, crossed.time, jnp.inf), exited.time),
-                 jnp.where(exited.found & (exited.time < crossed.time), exited.switch, crossed.switch))
+    return Event(
+        crossed.found | exited.found,
+        jnp.minimum(jnp.where(crossed.found, crossed.time, jnp.inf), exited.time),
+        jnp.where(exited.found & (exited.time < crossed.time), exited.switch, crossed.switch),
+    )
 
 
 class Piece(NamedTuple):
@@ -448,8 +465,10 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
     # sigma at the piece's start, which every stage's theta uses (step 2 of the weight): with the
     # contact held on for a robot that has just hit, and no contact held off, since the impact a
     # piece may end at is not known before its plan.
-    sigma_n = tuple(jnp.where(c.in_contact, c.kelvin, 0.0) - p.F_lim
-                    for c, p in zip(touches(ps, rows, options, Overrides(touching, apart)), ps))
+    sigma_n = tuple(
+        jnp.where(c.in_contact, c.kelvin, 0.0) - p.F_lim
+        for c, p in zip(touches(ps, rows, options, Overrides(touching, apart)), ps)
+    )
     # The first stage, at the piece's start: its fields give the plan (length and overrides), the
     # fractions theta that serve all four stages, and the signals. Outside the stage loop, so the
     # other three stages do not compute (and discard) them. No switch is held yet: the plan decides.
@@ -460,22 +479,30 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
     thetas = tuple(fractions(f, s_n, piece.h) for f, s_n in zip(fs, sigma_n))
     lam_star = tuple(sliding_weight(f) for f in fs)
     # 0 < lambda* < 1 only where the two rates differ (`sliding_weight` is 0 or 1 elsewhere).
-    free = tuple(f.in_contact & (switch == Switch.FREE) & (r > 0.0) & (r < 1.0) & ~last
-                 & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
-                 for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas))
+    free = tuple(
+        f.in_contact
+        & (switch == Switch.FREE)
+        & (r > 0.0)
+        & (r < 1.0)
+        & ~last
+        & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
+        for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas)
+    )
     overrides = piece.overrides._replace(free=free)
     k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
     # The start's weights without `free`: lambda* clipped, so the recorded signals and `Held.rate`
     # are the clipped sliding motion's, where the stages' rates continue it unclipped.
-    weights = tuple(weight(f, s_n, piece.h, switch, theta)
-                    for f, s_n, switch, theta in zip(fs, sigma_n, held_switch, thetas))
+    weights = tuple(
+        weight(f, s_n, piece.h, switch, theta) for f, s_n, switch, theta in zip(fs, sigma_n, held_switch, thetas)
+    )
     signals = model.Aux(*(jnp.stack(pair) for pair in zip(*(aux(f, lam) for f, lam in zip(fs, weights)))))
 
     def stage(carry, tableau):
         k_prev, total = carry
         a, b = tableau
-        fs, body = fields(ps, _axpy(rows, a * piece.h, k_prev), clock.advance(a * piece.h), overrides, scenario,
-                          options)
+        fs, body = fields(
+            ps, _axpy(rows, a * piece.h, k_prev), clock.advance(a * piece.h), overrides, scenario, options
+        )
         k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
         lam_star = jnp.stack([sliding_weight(f) for f in fs])
         return (k, jax.tree_util.tree_map(lambda x, y: x + b * y, total, k)), (k, lam_star)
@@ -558,33 +585,52 @@ def step(params, y, t, dt, scenario, options):
 
     def run(carry: Progress, j):
         last = j == PIECES - 1
-        piece = substep(ps, carry.rows, clock.advance(carry.offset), carry.remaining, carry.touching, carry.kept, dt,
-                        scenario, options, last=last)
+        piece = substep(
+            ps,
+            carry.rows,
+            clock.advance(carry.offset),
+            carry.remaining,
+            carry.touching,
+            carry.kept,
+            dt,
+            scenario,
+            options,
+            last=last,
+        )
         planned = piece.plan
         # The contact at the piece's end and at a cut inside it, under the piece's own contact
         # overrides (a robot that hits at the end is still apart there).
         touch = touches(ps, piece.rows, options, planned.overrides)
         # The piece as a trial: cut at a crossing it held the switch through, or where a robot's
         # sliding ended (module docstring).
-        crossings = tuple(trial_crossing(g, c.kelvin, p.F_lim, planned.h, ~last) for g, c, p in zip(piece.held, touch, ps))
+        crossings = tuple(
+            trial_crossing(g, c.kelvin, p.F_lim, planned.h, ~last) for g, c, p in zip(piece.held, touch, ps)
+        )
         exits = tuple(sliding_exit(slide, planned.h) for slide in piece.slides)
         events = tuple(map(first_event, crossings, exits))
         cut = events[0].found | events[1].found
-        tau = jnp.minimum(jnp.where(events[0].found, events[0].time, jnp.inf),
-                          jnp.where(events[1].found, events[1].time, jnp.inf))
+        tau = jnp.minimum(
+            jnp.where(events[0].found, events[0].time, jnp.inf), jnp.where(events[1].found, events[1].time, jnp.inf)
+        )
         h = jnp.where(cut, tau, planned.h)
         theta = h / jnp.where(planned.h > 0.0, planned.h, 1.0)
         h, theta, cut, tau, events = as_buffers(
-            (h, theta, cut, tau, events), (planned.h, jnp.ones_like(theta), jnp.zeros_like(cut), planned.h, events))
+            (h, theta, cut, tau, events), (planned.h, jnp.ones_like(theta), jnp.zeros_like(cut), planned.h, events)
+        )
         rows_cut = dense(carry.rows, planned.h, piece.stages, theta)
         F_end = forces(touches(ps, rows_cut, options, planned.overrides))
-        signals = jax.tree_util.tree_map(lambda s, n: jnp.where(carry.offset == 0.0, n, s), carry.signals,
-                                         piece.signals)
+        signals = jax.tree_util.tree_map(
+            lambda s, n: jnp.where(carry.offset == 0.0, n, s), carry.signals, piece.signals
+        )
         impact = tuple(i & ~cut for i in planned.impact)
         # A piece ends on the surface where it is cut at a crossing of F_lim or a sliding exit, or
         # where its plan ended it at a switch.
-        surface = jnp.stack([jnp.where(cut, e.found & (e.time <= tau) & (e.switch != Switch.FREE), at_switch)
-                             for e, at_switch in zip(events, planned.at_switch)])
+        surface = jnp.stack(
+            [
+                jnp.where(cut, e.found & (e.time <= tau) & (e.switch != Switch.FREE), at_switch)
+                for e, at_switch in zip(events, planned.at_switch)
+            ]
+        )
         # The next piece holds the switch of a robot whose sliding ended here, as it left the surface.
         kept = tuple(jnp.where(cut & x.found & (x.time <= tau), x.switch, Switch.FREE) for x in exits)
         carry = Progress(rows_cut, carry.remaining - h, carry.offset + h, impact, kept, F_end, signals)
@@ -620,8 +666,9 @@ class Filippov(Integrator):
     """The sliding-mode step for the hard switch: the dt -> 0 limit at dt = 1e-3 (docs/model.md)."""
 
     name = "filippov"
-    description = ("the sliding-mode step for the hard switch, the default for it: its answer is the dt -> 0 limit "
-                   "at dt = 1e-3")
+    description = (
+        "the sliding-mode step for the hard switch, the default for it: its answer is the dt -> 0 limit at dt = 1e-3"
+    )
     switches = ("hard",)
     default_for = ("hard",)
     converged_dt = {

@@ -71,7 +71,9 @@ def _zero_from(params: Params) -> jax.Array:
     """0 per sample (B,), computed from every parameter of that sample (a non-finite one gives NaN)."""
     total = 0.0
     for leaf in jax.tree_util.tree_leaves(params):
-        total = total + (leaf.reshape((-1,) + params.batch_shape).sum(0) if leaf.ndim > len(params.batch_shape) else leaf)
+        total = total + (
+            leaf.reshape((-1,) + params.batch_shape).sum(0) if leaf.ndim > len(params.batch_shape) else leaf
+        )
     return 0.0 * total
 
 
@@ -81,8 +83,9 @@ def step(params: Params, y: jax.Array, t, settings: Settings) -> jax.Array:
     return integrator.step(model.robots(params), y, t, settings.dt, get(settings.scenario), settings.options)[0]
 
 
-def integrate(params: Params, settings: Settings, metrics, *, every: int | None = None, checkpoint=True,
-              unroll: int = 1) -> Solution:
+def integrate(
+    params: Params, settings: Settings, metrics, *, every: int | None = None, checkpoint=True, unroll: int = 1
+) -> Solution:
     """Run the closed loop from rest over the horizon. Params must carry a batch axis.
 
     `every` records the state and signals every this many steps (None: metrics only). Under
@@ -142,7 +145,8 @@ def integrate(params: Params, settings: Settings, metrics, *, every: int | None 
     start = (model.init_state(params), metrics.init(batch, dtype))
     start = jax.tree_util.tree_map(
         lambda x: x + jnp.broadcast_to(anchor, x.shape).astype(x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
-        start)
+        start,
+    )
     carry = (*start, jnp.zeros(batch, bool), jnp.full(batch, jnp.inf, dtype) + anchor)
     if every is None:
         carry = run(carry, 0, n)

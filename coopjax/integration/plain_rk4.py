@@ -26,14 +26,20 @@ def rk4(f, t, y, dt, k1=None):
 def contact_forces(params, y, options):
     """Both grip forces (2, B) at the state y: the contact alone, no field."""
     st = model.split(y)
-    return jnp.stack([surrogates.contact_force(params[i], *model.geometry(params[i], st[i], model.SIGNS[i])[:2], options)
-                      for i in range(2)])
+    return jnp.stack(
+        [
+            surrogates.contact_force(params[i], *model.geometry(params[i], st[i], model.SIGNS[i])[:2], options)
+            for i in range(2)
+        ]
+    )
 
 
 @register
 class PlainRK4(Integrator):
     name = "rk4"
-    description = "plain RK4: the only choice for the smooth switches; with the hard switch a chattering, O(dt) approximation"
+    description = (
+        "plain RK4: the only choice for the smooth switches; with the hard switch a chattering, O(dt) approximation"
+    )
     switches = ("hard", "smooth", "blend", "straight_through")
     default_for = ("smooth", "blend", "straight_through")
     converged_dt = {

@@ -10,9 +10,29 @@ time t_k = k dt, k = 0..N) into the accumulators. Window membership is decided o
 float32 rounding of t cannot move a sample in or out of a window.
 """
 
-from coopjax.objectives.base import (METRICS, STATUS_FIELDS, Context, Metric, Metrics, MetricSet, Weights, check_names,
-                                     loss, register)
+from coopjax.objectives.base import (
+    METRICS,
+    STATUS_FIELDS,
+    Context,
+    Metric,
+    Metrics,
+    MetricSet,
+    Weights,
+    check_names,
+    loss,
+    register,
+)
 from coopjax.objectives import grip, margin, tracking  # noqa: E402,F401  (the built-in metrics register themselves)
 
-__all__ = ["Context", "METRICS", "Metric", "MetricSet", "Metrics", "STATUS_FIELDS", "Weights", "check_names", "loss",
-           "register"]
+__all__ = [
+    "Context",
+    "METRICS",
+    "Metric",
+    "MetricSet",
+    "Metrics",
+    "STATUS_FIELDS",
+    "Weights",
+    "check_names",
+    "loss",
+    "register",
+]

@@ -66,7 +66,10 @@ class Metric:
 
 METRICS: dict[str, Metric] = {}
 # Bookkeeping that every run reports beside the registered metrics; `status` is derived from them.
-STATUS_FIELDS = {"finite": "1 if the run did not diverge, else 0", "t_diverged": "s, when it diverged (NaN if it did not)"}
+STATUS_FIELDS = {
+    "finite": "1 if the run did not diverge, else 0",
+    "t_diverged": "s, when it diverged (NaN if it did not)",
+}
 RESERVED = (*STATUS_FIELDS, "status")
 
 
@@ -206,4 +209,3 @@ def loss(metrics: Metrics, weights: Weights = Weights()) -> jax.Array:
         + weights.crush * metrics.crush
         + weights.lag * (metrics.rms_lag / weights.lag_scale) ** 2
     )
-

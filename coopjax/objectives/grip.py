@@ -98,8 +98,11 @@ def _min_finalize(acc, ctx):
     return jnp.where(jnp.isinf(least), peak, least).min(0)
 
 
-MIN_GRIP = register(Metric("min_grip", "N", "least grip force over the grip window (both robots)",
-                           _min_init, _min_update, _min_finalize))
+MIN_GRIP = register(
+    Metric(
+        "min_grip", "N", "least grip force over the grip window (both robots)", _min_init, _min_update, _min_finalize
+    )
+)
 
 
 # --- peak_grip
@@ -112,8 +115,16 @@ def _peak_update(peak, obs, params, ctx):
     return jnp.maximum(peak, F)
 
 
-PEAK_GRIP = register(Metric("peak_grip", "N", "largest grip force over the whole run, impacts inside a step included",
-                            lambda b, d, ctx: _robots(b, d, -jnp.inf), _peak_update, lambda peak, ctx: peak.max(0)))
+PEAK_GRIP = register(
+    Metric(
+        "peak_grip",
+        "N",
+        "largest grip force over the whole run, impacts inside a step included",
+        lambda b, d, ctx: _robots(b, d, -jnp.inf),
+        _peak_update,
+        lambda peak, ctx: peak.max(0),
+    )
+)
 
 
 # --- the time means: trapezoidal integrals over each step's two pieces
@@ -154,10 +165,23 @@ def _window_mean(excess, window):
     return init, update, finalize
 
 
-SLIP = register(Metric("slip", "N^2", "time mean over the grip window of sum_i max(0, F_lim - F_i)^2",
-                       *_window_mean(lambda F, p: jnp.maximum(p.F_lim - F, 0.0), "grip")))
-CRUSH = register(Metric("crush", "N^2", "time mean over the grip window of sum_i max(0, F_i - F_max)^2",
-                        *_window_mean(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), "grip"), parameters=F_MAX))
+SLIP = register(
+    Metric(
+        "slip",
+        "N^2",
+        "time mean over the grip window of sum_i max(0, F_lim - F_i)^2",
+        *_window_mean(lambda F, p: jnp.maximum(p.F_lim - F, 0.0), "grip"),
+    )
+)
+CRUSH = register(
+    Metric(
+        "crush",
+        "N^2",
+        "time mean over the grip window of sum_i max(0, F_i - F_max)^2",
+        *_window_mean(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), "grip"),
+        parameters=F_MAX,
+    )
+)
 
 
 # --- impact: crush over the rest of the run after the grip window
@@ -177,5 +201,14 @@ def _impact_finalize(total, ctx):
     return total / span if span else jnp.full_like(total, jnp.nan)
 
 
-IMPACT = register(Metric("impact", "N^2", "as crush, over the rest of the run after the grip window (release)",
-                         lambda b, d, ctx: jnp.zeros(tuple(b), d), _impact_update, _impact_finalize, parameters=F_MAX))
+IMPACT = register(
+    Metric(
+        "impact",
+        "N^2",
+        "as crush, over the rest of the run after the grip window (release)",
+        lambda b, d, ctx: jnp.zeros(tuple(b), d),
+        _impact_update,
+        _impact_finalize,
+        parameters=F_MAX,
+    )
+)

@@ -30,6 +30,13 @@ def _finalize(least, ctx):
     return least.min(0)
 
 
-MIN_SWI = register(Metric("min_swi", "1", "least time-averaged switch swi over the grip window (both robots): "
-                          "the grip margin, 0 once the grip is lost",
-                          lambda b, d, ctx: jnp.full((2,) + tuple(b), jnp.inf, d), _update, _finalize))
+MIN_SWI = register(
+    Metric(
+        "min_swi",
+        "1",
+        "least time-averaged switch swi over the grip window (both robots): the grip margin, 0 once the grip is lost",
+        lambda b, d, ctx: jnp.full((2,) + tuple(b), jnp.inf, d),
+        _update,
+        _finalize,
+    )
+)

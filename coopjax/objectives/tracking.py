@@ -26,5 +26,13 @@ def _finalize(total, ctx):
     return jnp.sqrt(total / (2 * span)) if span > 0 else jnp.full_like(total, jnp.nan)
 
 
-RMS_LAG = register(Metric("rms_lag", "m", "RMS of x_ref - x_r over the lag window and both robots (trapezoidal in time)",
-                          lambda b, d, ctx: jnp.zeros(tuple(b), d), _update, _finalize))
+RMS_LAG = register(
+    Metric(
+        "rms_lag",
+        "m",
+        "RMS of x_ref - x_r over the lag window and both robots (trapezoidal in time)",
+        lambda b, d, ctx: jnp.zeros(tuple(b), d),
+        _update,
+        _finalize,
+    )
+)

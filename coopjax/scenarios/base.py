@@ -124,4 +124,3 @@ def get(name: str) -> Scenario:
         return SCENARIOS[name]
     except (KeyError, TypeError):
         raise InputError(f"unknown scenario {name!r}; choose one of: {', '.join(SCENARIOS)}", "scenario") from None
-

@@ -20,12 +20,16 @@ def command(params, clock: Clock):
     )
 
 
-CARRY = register(Scenario(
-    name="carry", T=4.0, command=command,
-    windows={"grip": (0.5, 2.0), "lag": (2.5, 4.0)},
-    description="pick, carry 0.5 m, release, settle: the tuning scenario, T = 4 s",
-    parameters={
-        "A_g": Spec(0.1, "m/s", False, "finite", "carry scenario: grip amplitude"),
-        "A_c": Spec(0.5, "m/s", False, "finite", "carry scenario: carry amplitude"),
-    },
-))
+CARRY = register(
+    Scenario(
+        name="carry",
+        T=4.0,
+        command=command,
+        windows={"grip": (0.5, 2.0), "lag": (2.5, 4.0)},
+        description="pick, carry 0.5 m, release, settle: the tuning scenario, T = 4 s",
+        parameters={
+            "A_g": Spec(0.1, "m/s", False, "finite", "carry scenario: grip amplitude"),
+            "A_c": Spec(0.5, "m/s", False, "finite", "carry scenario: carry amplitude"),
+        },
+    )
+)

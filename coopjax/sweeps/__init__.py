@@ -16,12 +16,34 @@ from coopjax.sweeps.parts import finished_parts
 from coopjax.sweeps.runner import evaluate, run
 from coopjax.sweeps.spec import SweepSpec, column_units, make_spec, result_columns, sample_values
 
-__all__ = ["KINDS", "Distribution", "SweepSpec", "column_units", "draw", "evaluate", "finished_parts", "make_spec",
-           "parse_distribution", "result_columns", "run", "sample_values", "sweep"]
+__all__ = [
+    "KINDS",
+    "Distribution",
+    "SweepSpec",
+    "column_units",
+    "draw",
+    "evaluate",
+    "finished_parts",
+    "make_spec",
+    "parse_distribution",
+    "result_columns",
+    "run",
+    "sample_values",
+    "sweep",
+]
 
 
-def sweep(config: Config | str = "carry", n=None, vary=None, fixed=None, seed=0, table=None, chunk=16384,
-          progress=False, **settings):
+def sweep(
+    config: Config | str = "carry",
+    n=None,
+    vary=None,
+    fixed=None,
+    seed=0,
+    table=None,
+    chunk=16384,
+    progress=False,
+    **settings,
+):
     """Notebook entry point: the sweep as a pandas DataFrame.
 
     Example: `sweep("carry", 1000, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.2:1"})`.

@@ -42,8 +42,13 @@ def parse_distribution(name: str, text: str) -> Distribution:
     except ValueError:
         raise InputError(f"{where}: {rest!r} are not all numbers", "vary") from None
     expected = {"uniform": 2, "loguniform": 2, "normal": 2, "grid": 3}.get(kind)
-    usage = {"uniform": "uniform:a:b", "loguniform": "loguniform:a:b", "normal": "normal:mean:sd",
-             "grid": "grid:a:b:k", "choice": "choice:v1,v2,..."}[kind]
+    usage = {
+        "uniform": "uniform:a:b",
+        "loguniform": "loguniform:a:b",
+        "normal": "normal:mean:sd",
+        "grid": "grid:a:b:k",
+        "choice": "choice:v1,v2,...",
+    }[kind]
     if (expected and len(values) != expected) or not values or not all(map(math.isfinite, values)):
         raise InputError(f"{where}: expected {usage} with finite numbers", "vary")
     if kind in ("uniform", "loguniform", "grid") and values[1] < values[0]:

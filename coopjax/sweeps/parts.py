@@ -57,8 +57,10 @@ def prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunk
     """The parts folder of a sweep: created with its manifest, or checked against it on resume.
     Returns which chunks are already finished."""
     manifest = os.path.join(parts, "manifest.json")
-    identity = json.dumps({"spec": json.loads(spec.to_json()), "chunk": chunk, "columns": list(spec.columns),
-                           "format": CHUNK_FORMAT}, sort_keys=True)
+    identity = json.dumps(
+        {"spec": json.loads(spec.to_json()), "chunk": chunk, "columns": list(spec.columns), "format": CHUNK_FORMAT},
+        sort_keys=True,
+    )
     if os.path.exists(manifest):
         if not resume:
             raise InputError(f"{parts} holds an unfinished sweep: resume it (--resume), or delete it", "resume")
@@ -68,13 +70,17 @@ def prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunk
             with open(manifest) as f:
                 saved = f.read()
         except OSError as error:
-            raise InputError(f"{manifest} is not readable ({error.strerror}): fix its permissions or delete {parts}",
-                             "resume") from None
+            raise InputError(
+                f"{manifest} is not readable ({error.strerror}): fix its permissions or delete {parts}", "resume"
+            ) from None
         if not os.access(parts, os.W_OK):
             raise InputError(f"{parts} is not writable: fix its permissions or delete it", "resume")
         if saved != identity:
-            raise InputError(f"{parts} belongs to a different sweep (other options or chunk size): "
-                             "use the same options, or delete it", "resume")
+            raise InputError(
+                f"{parts} belongs to a different sweep (other options or chunk size): "
+                "use the same options, or delete it",
+                "resume",
+            )
         return np.array([os.path.exists(part_path(parts, k)) for k in range(n_chunks)])
     if os.path.exists(parts) and not os.path.isdir(parts):
         raise InputError(f"{parts} exists and is not a folder: remove it", "out")

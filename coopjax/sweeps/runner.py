@@ -31,13 +31,20 @@ def evaluate(spec: SweepSpec, values: dict[str, np.ndarray], block: int | None =
     """The result columns (`spec.columns`, as float64) of the given parameter sets
     (`evaluation.evaluate`). `block`: samples per device per call (None: the sweep's own)."""
     params = make_params(**dict(spec.fixed), **values)
-    out = evaluation.evaluate(params, spec.config, check_step=spec.check_step,
-                              block=block or evaluation.block_size(spec.n))
+    out = evaluation.evaluate(
+        params, spec.config, check_step=spec.check_step, block=block or evaluation.block_size(spec.n)
+    )
     return np.column_stack([out[name] for name in spec.columns])
 
 
-def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: bool = False, progress: bool = False,
-        block: int | None = None):
+def run(
+    spec: SweepSpec,
+    chunk: int = 16384,
+    parts: str | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    block: int | None = None,
+):
     """Run a sweep and return its table as columns (sample, varied parameters, results).
 
     `block` fixes the samples per device per call (None: `block_size` of the sweep), so that sweeps
@@ -59,8 +66,15 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
         if n_proc > 1:
             done = np.asarray(multihost_utils.broadcast_one_to_all(done))
     results: dict[int, np.ndarray] = {}
-    bar = tqdm(total=spec.n, unit="sample", desc="sweep", disable=not (progress and pid == 0), dynamic_ncols=True,
-               mininterval=0.5, file=sys.stderr)
+    bar = tqdm(
+        total=spec.n,
+        unit="sample",
+        desc="sweep",
+        disable=not (progress and pid == 0),
+        dynamic_ncols=True,
+        mininterval=0.5,
+        file=sys.stderr,
+    )
     for k in np.flatnonzero(done) if pid == 0 else ():
         saved = load_part(parts, int(k), min((k + 1) * chunk, spec.n) - k * chunk, width)
         if saved is None:
@@ -71,7 +85,7 @@ def run(spec: SweepSpec, chunk: int = 16384, parts: str | None = None, resume: b
 
     todo = [int(k) for k in np.flatnonzero(~done)]
     for r in range(0, len(todo), n_proc):
-        round_chunks = todo[r:r + n_proc]
+        round_chunks = todo[r : r + n_proc]
         mine = round_chunks[pid] if pid < len(round_chunks) else None
         local = np.full((chunk, width), np.nan)
         if mine is not None:

@@ -20,7 +20,12 @@ from coopjax.sweeps.draws import Distribution, draw, grid_size, parse_distributi
 def column_units(config: Config | None = None) -> dict[str, str]:
     """Every result column's unit: the metrics' own declarations, then the bookkeeping."""
     names = config.metrics if config is not None else tuple(objectives.METRICS)
-    return {"sample": "index", **{n: objectives.METRICS[n].unit for n in names}, **evaluation.BOOKKEEPING, **evaluation.STEP_ERROR}
+    return {
+        "sample": "index",
+        **{n: objectives.METRICS[n].unit for n in names},
+        **evaluation.BOOKKEEPING,
+        **evaluation.STEP_ERROR,
+    }
 
 
 def result_columns() -> tuple[str, ...]:
@@ -53,8 +58,17 @@ class SweepSpec(NamedTuple):
         return evaluation.columns(self.config, self.check_step)
 
 
-def make_spec(config: Config | str = "carry", *, n=None, vary=None, fixed=None, seed=0, table=None,
-              check_step: bool = False, **settings) -> SweepSpec:
+def make_spec(
+    config: Config | str = "carry",
+    *,
+    n=None,
+    vary=None,
+    fixed=None,
+    seed=0,
+    table=None,
+    check_step: bool = False,
+    **settings,
+) -> SweepSpec:
     """Validate and freeze a sweep description; raises InputError on any mistake.
 
     `config` (or a scenario name) with `settings` (any `Config` field) fixes how each sample runs;
@@ -95,22 +109,37 @@ def make_spec(config: Config | str = "carry", *, n=None, vary=None, fixed=None, 
     if n is None or n < 1:
         raise InputError("say how many samples: n (or grid axes, or a table)", "n")
     if not dists and not table:
-        raise InputError(f"nothing varies, so all {n} samples would be the same run: vary a parameter "
-                         "(or give a table of sets), or simulate one run", "vary")
+        raise InputError(
+            f"nothing varies, so all {n} samples would be the same run: vary a parameter "
+            "(or give a table of sets), or simulate one run",
+            "vary",
+        )
     if not isinstance(check_step, bool):
         raise InputError(f"check_step is {check_step!r}: True or False", "check_step")
     missing = [m for m in step_check.METRICS if m not in config.metrics]
     if check_step and missing:
-        raise InputError(f"the two-step check compares {', '.join(step_check.METRICS)}: add {missing[0]} to the metrics",
-                         "check_step")
+        raise InputError(
+            f"the two-step check compares {', '.join(step_check.METRICS)}: add {missing[0]} to the metrics",
+            "check_step",
+        )
     columns = len(dists) + len(table) + len(evaluation.columns(config, check_step)) + 1
     if n * columns * 8 > memory_limit():
-        raise InputError(f"n = {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
-                         f"more than half of this machine's memory ({memory_limit() / 2**30:.3g} GiB); "
-                         f"at most {memory_limit() // (columns * 8):,} samples per sweep here", "n")
+        raise InputError(
+            f"n = {n}: a table of {n} rows x {columns} columns needs {n * columns * 8 / 2**30:.3g} GiB, "
+            f"more than half of this machine's memory ({memory_limit() / 2**30:.3g} GiB); "
+            f"at most {memory_limit() // (columns * 8):,} samples per sweep here",
+            "n",
+        )
     base = make_params(**fixed)  # every fixed value checked now, before any file is written
-    spec = SweepSpec(config, int(n), tuple(vary.items()), tuple(fixed.items()), int(seed),
-                     tuple((k, tuple(v)) for k, v in table.items()), check_step)
+    spec = SweepSpec(
+        config,
+        int(n),
+        tuple(vary.items()),
+        tuple(fixed.items()),
+        int(seed),
+        tuple((k, tuple(v)) for k, v in table.items()),
+        check_step,
+    )
     sample_values(spec)  # every drawn value checked now too
     _check_dtype_range(spec, base)
     return spec
@@ -123,8 +152,9 @@ def _check_dtype_range(spec: SweepSpec, base) -> None:
     big = float(np.finfo(np.float32).max)
     for name, value in list(spec.fixed) + [(n, np.max(np.abs(v))) for n, v in sample_values(spec).items()]:
         if abs(float(value)) > big:
-            raise InputError(f"{name} = {float(value):g} does not fit in float32 (at most {big:.3g}): "
-                             "use float64 (--x64)", name)
+            raise InputError(
+                f"{name} = {float(value):g} does not fit in float32 (at most {big:.3g}): use float64 (--x64)", name
+            )
 
 
 def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
@@ -146,5 +176,7 @@ def sample_values(spec: SweepSpec) -> dict[str, np.ndarray]:
             raise InputError(
                 f"{sources[name]} gives {name} = {v[i]:g} at sample {i}, but {name} must be "
                 f"{'finite' if rule == 'finite' else rule}: choose a distribution that stays in range "
-                "(e.g. loguniform)", "vary" if sources[name].startswith("vary") else "table")
+                "(e.g. loguniform)",
+                "vary" if sources[name].startswith("vary") else "table",
+            )
     return values

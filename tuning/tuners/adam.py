@@ -92,23 +92,43 @@ class AdamAL(Tuner):
         """Adam; the rate warms up over 10% of the run, then decays (cosine) to 10%."""
         warmup = max(1, self.steps // 10)
         schedule = optax.warmup_cosine_decay_schedule(
-            init_value=0.2 * self.learning_rate, peak_value=self.learning_rate, warmup_steps=warmup,
-            decay_steps=max(self.steps, warmup + 1), end_value=0.1 * self.learning_rate)
+            init_value=0.2 * self.learning_rate,
+            peak_value=self.learning_rate,
+            warmup_steps=warmup,
+            decay_steps=max(self.steps, warmup + 1),
+            end_value=0.1 * self.learning_rate,
+        )
         return optax.adam(schedule, b2=self.beta2)
 
     def init(self, problem, starts, seed):
         theta = np.asarray(starts, np.float64)
         K = theta.shape[0]
         history = {k: [] for k in ("step", "theta", "f", "holds", "shortfall", "L", "rejected")}
-        return State(0, theta, theta.copy(), np.ones(K), np.zeros(K, int), self.optimizer().init(jnp.asarray(theta)),
-                     constrained.init((K, problem.n_masses), self.rho), theta.copy(), np.full(K, np.inf), history, seed,
-                     problem)
+        return State(
+            0,
+            theta,
+            theta.copy(),
+            np.ones(K),
+            np.zeros(K, int),
+            self.optimizer().init(jnp.asarray(theta)),
+            constrained.init((K, problem.n_masses), self.rho),
+            theta.copy(),
+            np.full(K, np.inf),
+            history,
+            seed,
+            problem,
+        )
 
     def ask(self, state):
         if state.step >= self.steps:
             return None
-        return Query(state.theta, state.problem.training_masses(state.seed, state.step), "gradient",
-                     self.resolved_mode(state.theta.shape[1]), state.mult)
+        return Query(
+            state.theta,
+            state.problem.training_masses(state.seed, state.step),
+            "gradient",
+            self.resolved_mode(state.theta.shape[1]),
+            state.mult,
+        )
 
     def tell(self, state, query, ev):
         K = state.theta.shape[0]
@@ -126,8 +146,9 @@ class AdamAL(Tuner):
         updates, opt_state = self.optimizer().update(jnp.asarray(np.where(ok[:, None], grad, 0.0)), state.opt_state)
         good = np.where(ok[:, None], state.theta, state.good)
         halfway = (state.theta + good) / 2
-        theta = np.where(ok[:, None], state.theta + np.asarray(updates) * scale[:, None],
-                         np.where(frozen[:, None], good, halfway))
+        theta = np.where(
+            ok[:, None], state.theta + np.asarray(updates) * scale[:, None], np.where(frozen[:, None], good, halfway)
+        )
         theta = np.clip(theta, lo, hi)
         mult = state.mult
         k = state.step
@@ -136,11 +157,28 @@ class AdamAL(Tuner):
             keep = lambda a, b: jnp.where(jnp.asarray(ok).reshape((K,) + (1,) * (a.ndim - 1)), a, b)
             mult = jax.tree_util.tree_map(keep, new, mult)
         h = {name: list(v) for name, v in state.history.items()}
-        for name, value in (("step", k), ("theta", state.theta.tolist()), ("f", _floats(f)), ("holds", holds.tolist()),
-                            ("shortfall", _floats(c.max(1))), ("L", _floats(L)), ("rejected", int((~ok).sum()))):
+        for name, value in (
+            ("step", k),
+            ("theta", state.theta.tolist()),
+            ("f", _floats(f)),
+            ("holds", holds.tolist()),
+            ("shortfall", _floats(c.max(1))),
+            ("L", _floats(L)),
+            ("rejected", int((~ok).sum())),
+        ):
             h[name].append(value)
-        return state._replace(step=k + 1, theta=theta, good=good, scale=scale, retries=retries, opt_state=opt_state,
-                              mult=mult, best_theta=best_theta, best_f=best_f, history=h)
+        return state._replace(
+            step=k + 1,
+            theta=theta,
+            good=good,
+            scale=scale,
+            retries=retries,
+            opt_state=opt_state,
+            mult=mult,
+            best_theta=best_theta,
+            best_f=best_f,
+            history=h,
+        )
 
     def plan_text(self, n_params, starts):
         return f"{starts} starts, {self.resolved_mode(n_params)} mode, {self.steps} steps"
@@ -148,8 +186,10 @@ class AdamAL(Tuner):
     def progress_text(self, state, query, ev):
         i = int(np.argmin(np.where(ev.holds, ev.f, np.inf))) if ev.holds.any() else None
         best = f"best holding start {i}: f {ev.f[i]:.4g} N" if i is not None else "no start holds yet"
-        return (f"step {state.step:4d}/{self.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
-                f"mass, {state.history['rejected'][-1]} rejected; {best}")
+        return (
+            f"step {state.step:4d}/{self.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
+            f"mass, {state.history['rejected'][-1]} rejected; {best}"
+        )
 
     def expected_evaluations(self, starts):
         return self.steps

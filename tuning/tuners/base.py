@@ -106,8 +106,10 @@ def register(cls: type[Tuner]) -> type[Tuner]:
     incomplete tuner is refused here, not at its first call."""
     missing = ([] if hasattr(cls, "name") else ["name"]) + sorted(getattr(cls, "__abstractmethods__", ()))
     if not (inspect.isclass(cls) and issubclass(cls, Tuner)) or missing:
-        raise TypeError(f"{getattr(cls, '__name__', cls)!r} is not a complete tuner: it must subclass Tuner and "
-                        f"define {', '.join(missing) or 'name, init, ask, tell and candidates'}")
+        raise TypeError(
+            f"{getattr(cls, '__name__', cls)!r} is not a complete tuner: it must subclass Tuner and "
+            f"define {', '.join(missing) or 'name, init, ask, tell and candidates'}"
+        )
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"tuner {cls.name!r} must be a dataclass: its fields are its settings")
     if cls.name in TUNERS and TUNERS[cls.name] is not cls:
@@ -120,4 +122,3 @@ def get(name: str) -> type[Tuner]:
     if name not in TUNERS:
         raise InputError(f"unknown tuner {name!r}; choose one of: {', '.join(TUNERS)}", "method")
     return TUNERS[name]
-

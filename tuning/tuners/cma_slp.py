@@ -48,8 +48,10 @@ class State:
 @dataclasses.dataclass(frozen=True)
 class CMAESPolished(Tuner):
     name = "CMA-ES+SLP"
-    description = ("CMA-ES whose best candidate is polished by trust-region linear programs with exact Jacobians, and "
-                   "injected back into its population")
+    description = (
+        "CMA-ES whose best candidate is polished by trust-region linear programs with exact Jacobians, and "
+        "injected back into its population"
+    )
     uses_gradient = True
 
     cma: CMAES = CMAES()
@@ -69,8 +71,13 @@ class CMAESPolished(Tuner):
 
     def init(self, problem, starts, seed):
         history = {k: [] for k in ("step", "f", "holds", "shortfall", "phi", "radius", "margin", "accepted")}
-        return State(self.cma.init(problem, starts, seed), "cma", grid(problem.training_range, problem.n_masses),
-                     problem, history=history)
+        return State(
+            self.cma.init(problem, starts, seed),
+            "cma",
+            grid(problem.training_range, problem.n_masses),
+            problem,
+            history=history,
+        )
 
     def ask(self, state):
         if state.phase == "cma":
@@ -81,7 +88,8 @@ class CMAESPolished(Tuner):
 
     def tell(self, state, query, ev):
         return {"cma": self._tell_cma, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
-            state, query, ev)
+            state, query, ev
+        )
 
     def _tell_cma(self, state, query, ev):
         state.cma = self.cma.tell(state.cma, query, ev)
@@ -101,9 +109,15 @@ class CMAESPolished(Tuner):
         ok = bool(ev.valid[0]) and all(np.isfinite(v).all() for v in out.values())
         phi = float(self._phi(out, state.problem)[0]) if ok else np.inf
         self._keep(state, bool(ev.holds[0]), phi, state.theta)
-        for key, value in (("step", len(state.history["step"])), ("f", [float(ev.f[0])]), ("holds", [bool(ev.holds[0])]),
-                           ("shortfall", [float(ev.c.max())]), ("phi", [phi]), ("radius", [state.radius]),
-                           ("margin", [float(ev.min_swi.min())])):
+        for key, value in (
+            ("step", len(state.history["step"])),
+            ("f", [float(ev.f[0])]),
+            ("holds", [bool(ev.holds[0])]),
+            ("shortfall", [float(ev.c.max())]),
+            ("phi", [phi]),
+            ("radius", [state.radius]),
+            ("margin", [float(ev.min_swi.min())]),
+        ):
             state.history[key].append(value)
         if not ok:
             state.radius, state.phase = 0.0, "cma"
@@ -122,8 +136,9 @@ class CMAESPolished(Tuner):
         out = _outputs(ev)
         ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
         phi = np.where(ok, self._phi(out, state.problem), np.inf)
-        j, state.radius = trust_update(self, state.theta, state.radius, state.trials, state.predicted,
-                                       state.current["phi"], phi, ok)
+        j, state.radius = trust_update(
+            self, state.theta, state.radius, state.trials, state.predicted, state.current["phi"], phi, ok
+        )
         state.iterations += 1
         state.history["accepted"].append([j is not None])
         if j is not None:
@@ -148,5 +163,7 @@ class CMAESPolished(Tuner):
         return polished + self.cma.candidates(state.cma)
 
     def plan_text(self, n_params, starts):
-        return (f"CMA-ES from {starts} starts; every {self.every} generations its best polished by {self.polish} "
-                f"Jacobian steps (forward mode, {n_params} tangents) and injected back")
+        return (
+            f"CMA-ES from {starts} starts; every {self.every} generations its best polished by {self.polish} "
+            f"Jacobian steps (forward mode, {n_params} tangents) and injected back"
+        )

@@ -88,8 +88,9 @@ class CMAES(Tuner):
         cache = {}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
-            fun = cma.ConstrainedFitnessAL(lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0,
-                                           dimension=len(x0))
+            fun = cma.ConstrainedFitnessAL(
+                lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0, dimension=len(x0)
+            )
         with _silent_constraint_loggers():
             fun.al  # noqa: B018  (built now, while its loggers are silent)
         fun.cache = cache

@@ -35,8 +35,10 @@ class RandomSearch(Tuner):
         if self.generations is not None and state.generation >= self.generations:
             return None
         lo, hi = log_bounds(state.problem.names)
-        return Query(lo + (hi - lo) * state.rng.random((self.block, len(lo))),
-                     state.problem.training_masses(state.seed, state.generation))
+        return Query(
+            lo + (hi - lo) * state.rng.random((self.block, len(lo))),
+            state.problem.training_masses(state.seed, state.generation),
+        )
 
     def tell(self, state, query, ev):
         for x, f, h, ok in zip(query.thetas, ev.f, ev.holds, ev.valid):

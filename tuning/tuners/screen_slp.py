@@ -84,8 +84,12 @@ class State:
 def merit(ev_like: dict, w_lag, penalty, swi_penalty, swi_margin):
     """phi per candidate from (C, M) outputs peak, lag, c, swi."""
     gap = np.maximum(0.0, swi_margin - ev_like["swi"])
-    return (ev_like["peak"].max(1) + w_lag * ev_like["lag"].max(1) + penalty * ev_like["c"].sum(1)
-            + swi_penalty * gap.sum(1))
+    return (
+        ev_like["peak"].max(1)
+        + w_lag * ev_like["lag"].max(1)
+        + penalty * ev_like["c"].sum(1)
+        + swi_penalty * gap.sum(1)
+    )
 
 
 def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_margin):
@@ -99,12 +103,16 @@ def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_m
     M, n = out["J_peak"].shape
     cost = np.concatenate([np.zeros(n), [1.0, w_lag], np.full(M, penalty), np.full(M, swi_penalty)])
     zeros, ones, eye, none = np.zeros((M, 1)), np.ones((M, 1)), np.eye(M), np.zeros((M, M))
-    A = np.block([[out["J_peak"], -ones, zeros, none, none],
-                  [out["J_lag"], zeros, -ones, none, none],
-                  [out["J_c"], zeros, zeros, -eye, none],
-                  [-out["J_swi"], zeros, zeros, none, -eye]])
+    A = np.block(
+        [
+            [out["J_peak"], -ones, zeros, none, none],
+            [out["J_lag"], zeros, -ones, none, none],
+            [out["J_c"], zeros, zeros, -eye, none],
+            [-out["J_swi"], zeros, zeros, none, -eye],
+        ]
+    )
     b = np.concatenate([-out["peak"], -out["lag"], -out["c"], out["swi"] - swi_margin])
-    box = [(max(-radius, l - x), min(radius, h - x)) for x, l, h in zip(theta, lo, hi)]
+    box = [(max(-radius, low - x), min(radius, high - x)) for x, low, high in zip(theta, lo, hi)]
     bounds = box + [(None, None), (None, None)] + [(0.0, None)] * (2 * M)
     solution = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs")
     if solution.status != 0:
@@ -169,13 +177,26 @@ def _central_differences(query, ev, K, h):
     n = query.thetas.shape[1]
     rows = lambda x: x.reshape((K, 2 * n + 1) + x.shape[1:])
     centre = lambda x: rows(x)[:, 0]
-    slope = lambda x: np.moveaxis((rows(x)[:, 1:n + 1] - rows(x)[:, n + 1:]) / (2 * h), 1, -1)
+    slope = lambda x: np.moveaxis((rows(x)[:, 1 : n + 1] - rows(x)[:, n + 1 :]) / (2 * h), 1, -1)
     valid = rows(ev.valid).all(1)
-    jac = {"peak": slope(ev.peak), "rms_lag": slope(ev.rms_lag), "c": slope(ev.c), "min_swi": slope(ev.min_swi),
-           "f": slope(ev.f)}
-    lanes = Evaluation(f=centre(ev.f), c=centre(ev.c), peak=centre(ev.peak), rms_lag=centre(ev.rms_lag),
-                       min_grip=centre(ev.min_grip), valid=valid, holds=centre(ev.holds) & valid, jacobian=jac,
-                       min_swi=centre(ev.min_swi))
+    jac = {
+        "peak": slope(ev.peak),
+        "rms_lag": slope(ev.rms_lag),
+        "c": slope(ev.c),
+        "min_swi": slope(ev.min_swi),
+        "f": slope(ev.f),
+    }
+    lanes = Evaluation(
+        f=centre(ev.f),
+        c=centre(ev.c),
+        peak=centre(ev.peak),
+        rms_lag=centre(ev.rms_lag),
+        min_grip=centre(ev.min_grip),
+        valid=valid,
+        holds=centre(ev.holds) & valid,
+        jacobian=jac,
+        min_swi=centre(ev.min_swi),
+    )
     return Query(centre(query.thetas), query.masses, "jacobian"), lanes
 
 
@@ -188,18 +209,27 @@ class ScreenSLP(Tuner):
     """A batched screen (CMA-ES or Sobol), then Sl1LP on the epigraph of the worst case from its best points."""
 
     name = "screen-SLP"
-    description = ("a batched screen (CMA-ES generations), then trust-region linear programs on the worst case's "
-                   "epigraph with exact Jacobians (forward mode)")
+    description = (
+        "a batched screen (CMA-ES generations), then trust-region linear programs on the worst case's "
+        "epigraph with exact Jacobians (forward mode)"
+    )
     uses_gradient = True
     plain_run = True
     # False: no local solve; the screen goes on, batch after batch, until the budget ends (`ScreenOnly`).
     local_solve: ClassVar[bool] = True
 
-    screen: int = setting(512, "points screened in the box x/÷ e^SPREAD around the first start, besides the starts "
-                          "(Sobol: a power of 2)", "--screen")
+    screen: int = setting(
+        512,
+        "points screened in the box x/÷ e^SPREAD around the first start, besides the starts (Sobol: a power of 2)",
+        "--screen",
+    )
     spread: float = 2.5  # the screen's box: x/÷ e^spread around the first start, within the search box
-    search: str = setting("cma", "the screen's points after its first batch: CMA-ES generations (cma) or Sobol "
-                          "points (sobol)", "--search", ("cma", "sobol"))
+    search: str = setting(
+        "cma",
+        "the screen's points after its first batch: CMA-ES generations (cma) or Sobol points (sobol)",
+        "--search",
+        ("cma", "sobol"),
+    )
     sigma0: float = 1.0  # search="cma": CMA-ES's initial step, log units
     local: int = setting(8, "local solves run side by side (lanes of one batch)", "--local")
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
@@ -287,7 +317,7 @@ class ScreenSLP(Tuner):
             done, batch = sum(len(q) for q, _ in state.screen_log), self.local * self.radii
             if self.search == "cma" and done >= self._seeded(state):
                 return Query(self._generation(state), state.masses)
-            return Query(state.screen_all[done:done + batch], state.masses)
+            return Query(state.screen_all[done : done + batch], state.masses)
         if state.phase == "screen only":  # no local solve (the ablation): the screen goes on until the budget ends
             return Query(self._more_points(state), state.masses)
         if state.phase == "jacobian" and state.step < self.steps:
@@ -324,7 +354,8 @@ class ScreenSLP(Tuner):
         if state.phase == "screen only":
             return self._tell_more(state, query, ev)
         return {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
-            state, query, ev)
+            state, query, ev
+        )
 
     def _ok_phi(self, state, ev):
         out = _outputs(ev)
@@ -345,7 +376,7 @@ class ScreenSLP(Tuner):
         ranked = diverse_best(query.thetas, phi, self.local * (1 + self.refills), self.diverse)
         if not ranked:  # nothing ran: carry on from the given starts (their failure is reported)
             ranked = list(range(min(self.local, len(state.starts))))
-        chosen, rest = ranked[:self.local], ranked[self.local:]
+        chosen, rest = ranked[: self.local], ranked[self.local :]
         K = len(chosen)
         state.theta = query.thetas[chosen].copy()
         state.radius = np.full(K, self.radius)
@@ -353,8 +384,12 @@ class ScreenSLP(Tuner):
         state.queue = [query.thetas[i].copy() for i in rest]
         state.best = [(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen]
         state.lane = list(range(K))
-        state.screened = {"points": len(query.thetas), "finite": int(ok.sum()), "holding": int((ok & ev.holds).sum()),
-                          "best_phi": float(np.min(phi)) if ok.any() else None}
+        state.screened = {
+            "points": len(query.thetas),
+            "finite": int(ok.sum()),
+            "holding": int((ok & ev.holds).sum()),
+            "best_phi": float(np.min(phi)) if ok.any() else None,
+        }
         state.phase = "jacobian" if self.local_solve else "screen only"
         return state
 
@@ -373,10 +408,15 @@ class ScreenSLP(Tuner):
         state.pending = np.zeros(len(ok), bool)
         for k in range(len(ok)):
             self._keep_best(state, k, ev.holds[k], phi[k], query.thetas[k])
-        for key, value in (("step", state.step), ("f", [float(x) for x in np.where(ok, ev.f, np.inf)]),
-                           ("holds", [bool(x) for x in ev.holds]), ("shortfall", [float(x) for x in ev.c.max(1)]),
-                           ("phi", phi.tolist()), ("radius", state.radius.tolist()),
-                           ("margin", [float(x) for x in np.where(ok, ev.min_swi.min(1), np.nan)])):
+        for key, value in (
+            ("step", state.step),
+            ("f", [float(x) for x in np.where(ok, ev.f, np.inf)]),
+            ("holds", [bool(x) for x in ev.holds]),
+            ("shortfall", [float(x) for x in ev.c.max(1)]),
+            ("phi", phi.tolist()),
+            ("radius", state.radius.tolist()),
+            ("margin", [float(x) for x in np.where(ok, ev.min_swi.min(1), np.nan)]),
+        ):
             state.history[key].append(value)
         state.step += 1
         return self._plan(state)
@@ -390,8 +430,9 @@ class ScreenSLP(Tuner):
         cur = state.current
         for k in np.flatnonzero((state.radius > 0) & ~state.pending):
             here = {key: value[k] for key, value in cur.items()}
-            state.trials[k], state.predicted[k] = trial_steps(self, state.theta[k], here, state.radius[k], lo, hi,
-                                                              state.problem.w_lag)
+            state.trials[k], state.predicted[k] = trial_steps(
+                self, state.theta[k], here, state.radius[k], lo, hi, state.problem.w_lag
+            )
             if state.predicted[k, 0] <= 0:  # converged
                 state.radius[k] = 0.0
         for k in np.flatnonzero(state.radius <= 0):  # a converged (or dead) lane takes the screen's next point
@@ -421,8 +462,16 @@ class ScreenSLP(Tuner):
             for j in range(R):
                 if state.predicted[k, j] > 0:
                     self._keep_best(state, k, holds[k, j], phi[k, j], state.trials[k, j])
-            j, state.radius[k] = trust_update(self, state.theta[k], state.radius[k], state.trials[k],
-                                              state.predicted[k], state.current["phi"][k], phi[k], ok[k])
+            j, state.radius[k] = trust_update(
+                self,
+                state.theta[k],
+                state.radius[k],
+                state.trials[k],
+                state.predicted[k],
+                state.current["phi"][k],
+                phi[k],
+                ok[k],
+            )
             if j is not None:
                 state.theta[k] = state.trials[k, j]
                 accepted[k] = True
@@ -434,31 +483,40 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
-        return (f"a screen of {self._screen_text(starts)}, then {self.local} local solves side by side, "
-                f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)")
+        return (
+            f"a screen of {self._screen_text(starts)}, then {self.local} local solves side by side, "
+            f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)"
+        )
 
     def _screen_text(self, starts):
         batch, count = self.local * self.radii, self._sobol_count(starts)
         seeded = min(-(-starts // batch) * batch, starts + count)
         if self.search == "sobol" or seeded == starts + count:
             return f"{starts} starts + {count} Sobol points"
-        return (f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} CMA-ES "
-                f"generations of {batch}")
+        return (
+            f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} CMA-ES "
+            f"generations of {batch}"
+        )
 
     def progress_text(self, state, query, ev):
         if state.phase == "jacobian" and query.derivative is None and state.screened and state.step == 0:
             s = state.screened
             best = f"best merit {s['best_phi']:.4g} N" if s["best_phi"] is not None else "none ran"
-            return (f"screen: {s['points']} points, {s['finite']} ran, {s['holding']} hold at every training mass; {best}; "
-                    f"{len(state.theta)} local solves from the best distinct ones")
+            return (
+                f"screen: {s['points']} points, {s['finite']} ran, {s['holding']} hold at every training mass; {best}; "
+                f"{len(state.theta)} local solves from the best distinct ones"
+            )
         if query.derivative != "jacobian":
             return None
         phi = state.current["phi"]
         live = int((state.radius > 0).sum())
         best = min((b for b in state.best if b[0]), key=lambda b: b[1], default=None)
         text = f"best holding solve: merit {best[1]:.4g} N" if best else "no solve holds yet"
-        return (f"step {state.step:3d}/{self.steps}  merit of the lanes {np.nanmin(phi):.4g} to {np.nanmax(phi[np.isfinite(phi)]) if np.isfinite(phi).any() else float('nan'):.4g} N, "
-                f"{live} moving; {text}")
+        return (
+            f"step {state.step:3d}/{self.steps}  merit of the lanes {np.nanmin(phi):.4g} to "
+            f"{np.nanmax(phi[np.isfinite(phi)]) if np.isfinite(phi).any() else float('nan'):.4g} N, "
+            f"{live} moving; {text}"
+        )
 
     def expected_evaluations(self, starts):
         return (starts + self._sobol_count(starts)) // (self.local * self.radii) + 2 * self.steps
