@@ -92,7 +92,13 @@ def _add_tuner_flags(p) -> None:
         kind = type(first.default)
         text = "; ".join(f"{cls.name}: {f.metadata['help']} (default {f.default})" for cls, f in owners)
         p.add_argument(
-            flag, dest=_dest(flag), type=kind, default=None, choices=first.metadata.get("choices"), help=text
+            flag,
+            dest=_dest(flag),
+            metavar=None if first.metadata.get("choices") else flag[2:].upper().replace("-", "_"),
+            type=kind,
+            default=None,
+            choices=first.metadata.get("choices"),
+            help=text,
         )
         for _, f in owners:
             FIELD_FLAGS[f.name] = flag
