@@ -51,13 +51,3 @@ LABELS = tuple(s.label for s in Status)
 def labels(codes) -> np.ndarray:
     """Status codes (any integer array) as their labels."""
     return np.asarray(LABELS)[np.asarray(codes, int)]
-
-
-def codes(names) -> np.ndarray:
-    """Labels (any string array) as status codes."""
-    return np.asarray([LABELS.index(str(n)) for n in np.ravel(names)], int).reshape(np.shape(names))
-
-
-def describe() -> str:
-    """One line per status, for help texts."""
-    return "; ".join(f"{s.label}: {s.message}" for s in Status)

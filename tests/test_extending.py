@@ -21,6 +21,8 @@ from tuning.tuners import setting
 from tuning.tuners import TUNERS
 from tuning.tuners.random_search import RandomSearch
 
+from test_tuning_cli import SMALL_TUNE
+
 
 # --- a scenario with an amplitude parameter of its own: grip, then hold still -------------------
 
@@ -220,22 +222,7 @@ def test_an_incomplete_extension_is_refused_when_it_is_registered():
 
 
 def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_dir, capsys):
-    small = [
-        "--starts",
-        "2",
-        "--train-masses",
-        "2",
-        "--held-out",
-        "2",
-        "--params",
-        "gains",
-        "--masses",
-        "loguniform:0.8:4.5",
-        "--margin",
-        "0",
-        "--fixed-masses",
-        "--quiet",
-    ]
+    small = [*SMALL_TUNE, "--quiet"]
     code = cli.main(["tune", "--method", "best start", "--pick", "1", *small, "--out", "best.json"])
     out, err = capsys.readouterr()
     assert code == 0, out + err

@@ -222,11 +222,11 @@ def test_parquet_output_and_from_table_round_trip(fresh_dir):
 
 
 def test_one_status_vocabulary_with_a_message_each():
-    from coopjax.status import LABELS, MESSAGES, Status, codes, labels
+    from coopjax.status import LABELS, MESSAGES, Status, labels
 
     assert set(MESSAGES) == set(Status) and all(MESSAGES[s] for s in Status)
     assert LABELS == ("ok", "diverged", "unstable_loop", "step_beyond_limit", "step_artefact")
-    assert labels(codes(np.array(LABELS))).tolist() == list(LABELS)
+    assert labels(np.arange(len(Status))).tolist() == list(LABELS)
     assert [s.measured for s in Status] == [True, False, False, False, True]
     # The bookkeeping's help names every label, and a metric cannot take a status column's name.
     assert sweeps.column_units()["status"] == "|".join(LABELS)

@@ -14,6 +14,10 @@ from tuning.tuners import TUNERS
 from test_tuning import BASE, PROBLEM, THETA, TUNER
 
 
+# The smallest tune that still trains, selects and judges: every plain-run test uses it.
+SMALL_TUNE = (
+    "--starts 2 --train-masses 2 --held-out 2 --params gains --masses loguniform:0.8:4.5 --margin 0 --fixed-masses"
+).split()
 METHOD_FLAGS = {
     "screen-SLP": ["--screen", "8", "--local", "2"],
     "gradient": ["--method", "gradient", "--mode", "forward"],
@@ -27,19 +31,7 @@ def test_cli_writes_tuned_json_whose_after_matches_a_fresh_hard_evaluation(fresh
             "tune",
             "--steps",
             "2",
-            "--starts",
-            "2",
-            "--train-masses",
-            "2",
-            "--held-out",
-            "2",
-            "--params",
-            "gains",
-            "--masses",
-            "loguniform:0.8:4.5",
-            "--margin",
-            "0",
-            "--fixed-masses",
+            *SMALL_TUNE,
             *METHOD_FLAGS[method],
             "--out",
             "tuned.json",
