@@ -80,9 +80,9 @@ def evaluate(params: Params, config: Config, *, check_step: bool = False, block:
     out["dt_limit"] = limit
     if check_step:
         fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block)
+        names = step_check.checked(config)
         error = step_check.step_error(
-            {n: out[n] for n in step_check.METRICS},
-            {n: np.asarray(getattr(fine, n), np.float64) for n in step_check.METRICS},
+            {n: out[n] for n in names}, {n: np.asarray(getattr(fine, n), np.float64) for n in names}
         )
         status = np.where((status == Status.OK) & step_check.artefacts(error), Status.STEP_ARTEFACT, status)
         out["step_error"] = error

@@ -18,6 +18,9 @@ import dataclasses
 
 import numpy as np
 
+from coopjax import scenarios
+from coopjax.objectives.base import missing_windows
+
 from coopjax.config import Config
 
 # The accuracy tolerances against the dt -> 0 limit: min grip in N, peak grip and RMS lag relative.
@@ -25,17 +28,27 @@ TOLERANCE = {"min_grip": ("absolute", 0.05), "peak_grip": ("relative", 0.02), "r
 METRICS = tuple(TOLERANCE)
 
 
+def checked(config: Config) -> tuple[str, ...]:
+    """The checked metrics the configuration's scenario has windows for (the paper scenario has no
+    lag window: its RMS lag is NaN, and would make every sample's check NaN)."""
+    scenario = scenarios.get(config.scenario)
+    return tuple(m for m in METRICS if not missing_windows(m, scenario))
+
+
 def halved(config: Config) -> Config:
     """The check's configuration: the same run at half the step, with (at least) the checked metrics."""
-    metrics = tuple(config.metrics) + tuple(m for m in METRICS if m not in config.metrics)
+    metrics = tuple(config.metrics) + tuple(m for m in checked(config) if m not in config.metrics)
     return dataclasses.replace(config, dt=config.dt / 2, metrics=metrics)
 
 
 def step_error(coarse: dict, fine: dict) -> np.ndarray:
-    """Per sample, the largest of the three disagreements in units of its tolerance (1 = at the
-    tolerance; NaN where either run is not finite). `coarse` and `fine` map metric names to arrays."""
+    """Per sample, the largest of the disagreements of the metrics in `coarse` (those of `METRICS`,
+    `checked`), in units of their tolerances (1 = at the tolerance; NaN where either run is not
+    finite). `coarse` and `fine` map metric names to arrays."""
+    names = [n for n in METRICS if n in coarse]
     ratios = []
-    for name, (kind, tol) in TOLERANCE.items():
+    for name in names:
+        kind, tol = TOLERANCE[name]
         a, b = np.asarray(coarse[name], np.float64), np.asarray(fine[name], np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
             gap = np.abs(a - b) if kind == "absolute" else np.abs(a - b) / np.abs(b)
@@ -45,7 +58,7 @@ def step_error(coarse: dict, fine: dict) -> np.ndarray:
     bad = np.any(
         [
             ~np.isfinite(np.asarray(coarse[n], np.float64)) | ~np.isfinite(np.asarray(fine[n], np.float64))
-            for n in METRICS
+            for n in names
         ],
         axis=0,
     )

@@ -34,6 +34,17 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
+@pytest.fixture(autouse=True)
+def small_judge_block(monkeypatch):
+    """The judge's runs per device per call, at the suite's size. A run's judgings share one block
+    (`JUDGE_BLOCK`, 128) so that they share one compiled program; with the suite's unoptimised XLA
+    code (above), judging 2 held-out draws in blocks of 128 per device cost 8 s a time. The code
+    path is the same at any block."""
+    from tuning import judging
+
+    monkeypatch.setattr(judging, "JUDGE_BLOCK", 8)
+
+
 @pytest.fixture
 def fresh_dir(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

@@ -227,7 +227,7 @@ CASES = [
     ("tune-w-lag", {}, ["tune", "--w-lag", "-1"], {}, "--w-lag is -1"),
     ("tune-set-tuned", {}, ["tune", "--set", "K_GP=0.2"], {}, "both tuned (--params) and fixed"),
     ("tune-set-mass", {}, ["tune", "--set", "M_b=2"], {}, "the body mass is what the tuner varies"),
-    ("tune-held-out", {}, ["tune", "--held-out", "1"], {}, "at least 2 masses"),
+    ("tune-held-out", {}, ["tune", "--held-out", "1"], {}, "at least 2 draws"),
     ("tune-lag-weights", {}, ["tune", "--pareto", "--lag-weights", "a,b"], {}, "not a comma-separated list"),
     ("tune-seeds-twice", {}, ["tune", "--compare", "--seeds", "1,1"], {}, "names a value twice"),
     ("tune-compare-pareto", {}, ["tune", "--compare", "--pareto"], {}, "choose one"),

@@ -57,8 +57,7 @@ class Analytic:
         jac = None
         if query.derivative == "jacobian":
             jac = {
-                "peak": J_peak,
-                "rms_lag": np.zeros_like(J_peak),
+                "parts": np.concatenate([J_peak, np.zeros_like(J_peak)], axis=1),  # the peak term, the lag term
                 "c": np.zeros_like(J_peak),
                 "min_swi": J_swi,
                 "f": J_peak[:, 0],
@@ -66,17 +65,16 @@ class Analytic:
         return Evaluation(
             f=peak.max(1),
             c=zeros,
-            peak=peak,
-            rms_lag=zeros,
-            min_grip=np.full((C, M), 10.0),
+            parts=np.concatenate([peak, zeros], axis=1),
             valid=finite,
             holds=finite & (swi > 0).all(1),
-            jacobian=jac,
             min_swi=swi,
+            jacobian=jac,
         )
 
 
-PROBLEM = Problem(names=("K_GP", "K_GI"), n_masses=3, w_lag=1.0)
+# The default problem's terms (max peak_grip, max rms_lag) and grip requirement, on three draws.
+PROBLEM = Problem(names=("K_GP", "K_GI"), n_draws=3)
 
 
 def solve(tuner, starts, evaluator, **kwargs):
@@ -125,7 +123,7 @@ def test_the_screen_hands_the_best_distinct_points_to_the_local_solve():
         state = tuner.tell(state, query, told[-1])
     thetas = np.concatenate(asked)
     assert len(thetas) == 24 and np.array_equal(thetas[0], [2.0, 2.0])  # the start, then 23 Sobol points
-    phi = np.concatenate([ev.peak.max(1) for ev in told])
+    phi = np.concatenate([ev.parts[:, :3].max(1) for ev in told])
     assert np.array_equal(state.theta[0], thetas[np.argmin(phi)])  # the best point starts the first solve
     assert tuner.ask(state).derivative == "jacobian"
 
@@ -137,7 +135,7 @@ def screen(tuner, starts):
     while state.phase == "screen":
         query = tuner.ask(state)
         ev = Analytic()(query)
-        batches.append((query.thetas, ev.peak.max(1)))
+        batches.append((query.thetas, ev.parts[:, :3].max(1)))
         state = tuner.tell(state, query, ev)
     return batches
 
@@ -208,7 +206,7 @@ def test_without_the_local_solve_the_screen_goes_on_with_new_points():
 
 
 def test_the_jacobians_are_the_central_differences_of_the_hard_model():
-    """Every per-mass output the local solve linearises, at a mass where the grip holds (the margin
+    """Every per-draw output the local solve linearises, at a mass where the grip holds (the margin
     min_swi is the active measure) and one where it is lost (the shortfall c is): forward mode
     against central differences of the same discretised model (training step, float64)."""
     from test_tuning import BASE, PROBLEM, THETA
@@ -223,8 +221,8 @@ def test_the_jacobians_are_the_central_differences_of_the_hard_model():
     shifted = np.concatenate([THETA + h * e for e in np.eye(n)] + [THETA - h * e for e in np.eye(n)])
     values = evaluate(Query(shifted, masses))
     K = len(THETA)
-    for name, key in (("peak", "peak"), ("rms_lag", "rms_lag"), ("c", "c"), ("min_swi", "min_swi")):
-        v = getattr(values, key).reshape(2, n, K, len(masses))
+    for name in ("parts", "c", "min_swi"):
+        v = getattr(values, name).reshape(2, n, K, -1)
         fd = np.moveaxis((v[0] - v[1]) / (2 * h), 0, -1)  # (K, M, n)
         scale = np.abs(fd).max() + 1e-12
         np.testing.assert_allclose(ev.jacobian[name], fd, rtol=1e-4, atol=1e-5 * scale, err_msg=name)

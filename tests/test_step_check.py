@@ -6,7 +6,7 @@ import pytest
 
 import coopjax as cj
 from coopjax import step_check, sweeps
-from tuning import judge as judgement
+from tuning import judging as judgement
 
 # Found by optimising against one step (`python -m benchmarks.convergence --artefact-search`): a
 # cross-entropy search (4 rounds of 1024 candidates in the log box of the derivative study, the best
@@ -82,3 +82,15 @@ def test_the_artefact_is_wrong_and_the_limit_agrees_two_ways():
 def test_check_step_needs_the_compared_metrics():
     with pytest.raises(cj.InputError, match="add peak_grip"):
         sweeps.make_spec("carry", n=2, vary={"M_b": "uniform:1:2"}, metrics=("min_grip", "rms_lag"), check_step=True)
+
+
+def test_the_check_runs_on_a_scenario_without_a_lag_window():
+    # The paper scenario has no lag window (its RMS lag is NaN): the check compares the metrics it
+    # has, instead of being NaN ("not checked") for every sample.
+    params = cj.make_params(K_GP=np.array([0.5, 0.5]), M_b=np.array([1.0, 1.0]))
+    config = cj.Config("paper", dt=2e-3, dtype="float64").validate()
+    assert step_check.checked(config) == ("min_grip", "peak_grip")
+    from coopjax import evaluation
+
+    out = evaluation.evaluate(params, config, check_step=True)
+    assert np.isfinite(out["step_error"]).all(), out["step_error"]

@@ -19,7 +19,7 @@ from tuning.tuners.adam import AdamAL
 BASE = cj.make_params()
 # Two masses per start keep the tests cheap; one heavy enough that Table 1's gains lose the grip, so
 # the constraint term is active in the gradient test.
-PROBLEM = pb.Problem(names=pb.GAINS, n_masses=2, masses=("loguniform", 0.8, 4.5), margin=0.0, jitter=False)
+PROBLEM = pb.Problem(names=pb.GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False)
 THETA = np.log(np.asarray([[0.08, 0.078, 2.93, 1224.0], [0.054, 0.3, 1.0, 600.0]]))
 TUNER = AdamAL(steps=4, mode="forward", learning_rate=0.2)
 
@@ -82,7 +82,7 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
     both = evaluate(Query(THETA, masses))
     for k in range(THETA.shape[0]):
         one = evaluate(Query(THETA[k : k + 1], masses))
-        for name in ("f", "c", "peak", "rms_lag", "min_grip", "min_swi"):
+        for name in ("f", "c", "parts", "min_swi"):
             np.testing.assert_allclose(
                 getattr(one, name)[0], getattr(both, name)[k], rtol=1e-12, atol=1e-14, err_msg=name
             )
@@ -145,7 +145,7 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
     # No process-wide side effect: the working folder is never changed (a background thread shares it).
     monkeypatch.setattr(os, "chdir", lambda *a: pytest.fail("the CMA-ES tuner changed the working folder"))
     tuner = CMAES()
-    state = tuner.init(pb.Problem(names=("K_GP", "K_GI"), n_masses=2), np.log([[0.5, 0.1], [0.2, 0.05]]), 0)
+    state = tuner.init(pb.Problem(names=("K_GP", "K_GI"), n_draws=2), np.log([[0.5, 0.1], [0.2, 0.05]]), 0)
     first = state.popsize
     for _ in range(200):  # a quadratic with its minimum cut off by a constraint: cma soon meets tolfun
         query = tuner.ask(state)
@@ -158,11 +158,10 @@ def test_ipop_cma_es_restarts_with_twice_the_population_and_writes_no_files(tmp_
             Evaluation(
                 f=(query.thetas**2).sum(1),
                 c=c,
-                peak=zeros,
-                rms_lag=zeros,
-                min_grip=zeros,
+                parts=zeros,
                 valid=np.ones(C, bool),
                 holds=(c == 0).all(1),
+                min_swi=zeros,
             ),
         )
     assert state.restarts >= 1 and state.popsize == first * 2**state.restarts

@@ -151,7 +151,7 @@ def run(
         evaluation = evaluator(query)
         state = tuner.tell(state, query, evaluation)
         elapsed += time.perf_counter() - start - (evaluator.compile_s - compiled)
-        trajectories += len(query.thetas) * len(query.masses)
+        trajectories += len(query.thetas) * len(query.draws) * len(problem.scenarios)
         log.append((query, evaluation))
         clock.append((elapsed, trajectories))
         record.add(query, evaluation, elapsed, trajectories)
@@ -169,7 +169,7 @@ def _same(a: Query, b: Query) -> bool:
         a.derivative == b.derivative
         and a.mode == b.mode
         and np.array_equal(a.thetas, b.thetas)
-        and np.array_equal(a.masses, b.masses)
+        and np.array_equal(a.draws, b.draws)
     )
 
 

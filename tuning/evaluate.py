@@ -1,9 +1,19 @@
 """The evaluator every tuner shares: a `Query` in, an `Evaluation` out, on the problem's model.
 
-Each kind of evaluation (values, a forward-mode Jacobian, a gradient) and each batch shape is
-compiled once, ahead of the first call, and its compile time kept apart from the clock, so that
-tuners are compared on the time they spend evaluating. The batch of candidates x masses is split
-over every local device inside the compiled program (`coopjax.devices.run`).
+An evaluation is two kinds of compiled program:
+
+- **the runs**: per scenario, the batch of (candidate, draw) runs' metrics, with their forward
+  tangents along the tuned parameters (a Jacobian) or their reverse-mode pull-back (a gradient).
+  These programs depend on the scenario's training configuration, the tuned names and the batch
+  shape, not on the problem's terms, so problems that differ only in what they minimise and require
+  share them (and the compile cache keeps them between runs);
+- **the problem's algebra** (`tuning.problem.combine`): aggregates, requirements, the tuner's scalar,
+  and their derivatives with respect to the metrics: small programs, quick to compile.
+
+The chain rule joins them. Each program is compiled once per kind and shape, ahead of the first
+call, and its compile time kept apart from the clock, so that tuners are compared on the time they
+spend evaluating. The batch is split over every local device inside the run programs
+(`coopjax.devices.run`).
 """
 
 from __future__ import annotations
@@ -15,145 +25,196 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tuning.problem import HOLD_TOLERANCE, Problem, terms
+from coopjax.config import Config
+from coopjax.params import Params, split_name
+from tuning.problem import Problem, bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
+
+OUTPUTS = ("f", "c", "parts", "min_swi")  # what a Jacobian is taken of
+
+
+def _direction(params: Params, name: str) -> Params:
+    """d params / d log(name): the named leaf's own value (one robot's row for `K_GP_L`), else 0."""
+    base, robot = split_name(name)
+    tangent = {k: jnp.zeros_like(v) for k, v in params.leaves().items()}
+    leaf = params.leaves()[base]
+    if robot is None:
+        tangent[base] = leaf
+    else:
+        rows = jnp.arange(leaf.shape[0]).reshape((-1,) + (1,) * (leaf.ndim - 1))
+        tangent[base] = jnp.where(rows == ("L", "R").index(robot), leaf, 0.0)
+    return params.with_leaves(**tangent)
+
+
+@functools.lru_cache(maxsize=64)
+def _runs(config: Config, kind: str | None, names: tuple, checkpoint):
+    """The jitted runs of one scenario: params -> metrics; with kind "jvp" also their tangents
+    (n, B) along each tuned name; with "vjp", (params, cotangents of the metrics) -> (n, B)."""
+    metrics = lambda params: run_metrics(config, params, checkpoint)
+    if kind is None:
+        return jax.jit(metrics)
+    if kind == "jvp":
+
+        def jvp(params):
+            # All n tangents through one forward pass (vmap).
+            directions = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_direction(params, n) for n in names])
+            out, tangents = jax.vmap(lambda d: jax.jvp(metrics, (params,), (d,)), out_axes=(None, 0))(directions)
+            return out, tangents
+
+        return jax.jit(jvp)
+
+    def vjp(params, cotangent):
+        out, pull = jax.vjp(metrics, params)
+        grad = pull(cotangent)[0]
+        return out, jnp.stack([_pick(grad, params, n) for n in names])
+
+    return jax.jit(vjp)
+
+
+def _pick(grad: Params, params: Params, name: str):
+    """d / d log(name) from the gradient with respect to the leaves: (B,)."""
+    base, robot = split_name(name)
+    g, value = grad.leaves()[base], params.leaves()[base]
+    if robot is not None:
+        return (g * value)[("L", "R").index(robot)]
+    return g * value if g.ndim == 1 else (g * value).sum(0)
 
 
 @functools.lru_cache(maxsize=32)
-def _function(problem: Problem, derivative, mode, scalar, checkpoint=True):
-    """The jitted function of one kind of evaluation: (thetas, masses, base, weights) -> outputs.
-    `checkpoint` (the reverse-mode memory policy of `coopjax.simulate`) matters to gradients only."""
+def _algebra(problem: Problem, kind: str | None, scalar, K: int):
+    """The problem's terms from the runs (and their derivatives with respect to the runs' metrics)."""
 
-    def outputs(thetas, masses, base):
-        t = terms(thetas, base, problem, masses)
-        m = t.metrics
-        return dict(
-            f=t.f,
-            c=t.c,
-            peak=m.peak_grip,
-            rms_lag=m.rms_lag,
-            min_grip=m.min_grip,
-            min_swi=m.min_swi,
-            finite=m.finite.astype(thetas.dtype),
-        )
+    def outputs(runs, bounds):
+        t = combine(problem, runs, bounds, K)
+        return dict(f=t.f, c=t.c, parts=t.parts, min_swi=t.min_swi), dict(holds=t.holds, finite=t.metrics["finite"])
 
-    if derivative is None:
-        return jax.jit(lambda thetas, masses, base, weights: outputs(thetas, masses, base))
+    if kind is None:
+        return jax.jit(lambda runs, bounds: outputs(runs, bounds))
+    if kind == "jacobian":
 
-    if derivative == "jacobian":
-
-        def jacobian(thetas, masses, base, weights):
-            # The candidates are independent, so one tangent per parameter column gives every
-            # candidate's column at once; all n tangents go through one forward pass (vmap).
-            n = thetas.shape[1]
-            basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
-            out, tangents = jax.vmap(
-                lambda v: jax.jvp(lambda th: outputs(th, masses, base), (thetas,), (v,)), out_axes=(None, 0)
-            )(basis)
-            out["jacobian"] = {k: jnp.moveaxis(tangents[k], 0, -1) for k in ("f", "c", "peak", "rms_lag", "min_swi")}
-            return out
+        def jacobian(runs, tangents, bounds):
+            # tangents: per scenario, metric -> (n, B); one jvp per tuned name (vmap).
+            real = lambda r: outputs(r, bounds)[0]
+            out, jac = jax.vmap(lambda t: jax.jvp(real, (runs,), (t,)), in_axes=(0,), out_axes=(None, 0))(tangents)
+            return out, outputs(runs, bounds)[1], {k: jnp.moveaxis(v, 0, -1) for k, v in jac.items()}
 
         return jax.jit(jacobian)
+    if kind == "forward":
 
-    def value(th, masses, base, weights):
-        t = terms(th, base, problem, masses, checkpoint)
-        return scalar(problem, t.f, t.c, weights), t
-
-    def pack(t, L, grad):
-        m = t.metrics
-        return dict(
-            f=t.f,
-            c=t.c,
-            peak=m.peak_grip,
-            rms_lag=m.rms_lag,
-            min_grip=m.min_grip,
-            min_swi=m.min_swi,
-            finite=m.finite,
-            value=L,
-            gradient=grad,
-        )
-
-    if mode == "forward":
-
-        def forward(thetas, masses, base, weights):
-            # One tangent per parameter column of every candidate, one after another (`lax.map`):
-            # vmapped, these tangents ran 1.8x slower (their working set left the cache).
-            n = thetas.shape[1]
-            basis = jnp.eye(n, dtype=thetas.dtype)[:, None, :] * jnp.ones_like(thetas)[None]
-            L, t = value(thetas, masses, base, weights)
-            tangents = jax.lax.map(
-                lambda v: jax.jvp(lambda th: value(th, masses, base, weights)[0], (thetas,), (v,))[1], basis
-            )
-            return pack(t, L, tangents.T)
+        def forward(runs, tangents, bounds, weights):
+            value = lambda r: scalar(problem, *(lambda t: (t.f, t.c))(combine(problem, r, bounds, K)), weights)
+            L, dL = jax.vmap(lambda t: jax.jvp(value, (runs,), (t,)), out_axes=(None, 0))(tangents)
+            return L, dL.T, outputs(runs, bounds)
 
         return jax.jit(forward)
 
-    def reverse(thetas, masses, base, weights):
-        # The candidates are separable (L_c depends on theta_c alone): the gradient of their sum.
-        (_, (L, t)), grad = jax.value_and_grad(
-            lambda th: (lambda L, t: (L.sum(), (L, t)))(*value(th, masses, base, weights)), has_aux=True
-        )(thetas)
-        return pack(t, L, grad)
+    def reverse(runs, bounds, weights):
+        # The candidates are separable (L_k depends on candidate k alone): the gradient of their sum.
+        value = lambda r: scalar(problem, *(lambda t: (t.f, t.c))(combine(problem, r, bounds, K)), weights)
+        L, pull = jax.vjp(value, runs)
+        return L, pull(jnp.ones_like(L))[0], outputs(runs, bounds)
 
     return jax.jit(reverse)
 
 
+# Compiled run programs, shared by every evaluator of the process (problems that differ only in
+# their terms and requirements run the same programs).
+_EXECUTABLES: dict = {}
+
+
 class Evaluator:
-    """Runs queries for one problem and base; counts trajectories and keeps compile time apart."""
+    """Runs queries for one problem and base; counts trajectories and keeps compile time apart.
+    `base` is every parameter the problem neither tunes nor draws (its fixed values are applied here)."""
 
     def __init__(self, problem: Problem, base, scalar=None, checkpoint: bool | str = True):
-        self.problem, self.base, self.scalar, self.checkpoint = problem, base, scalar, checkpoint
-        self.F_lim = float(np.asarray(base.F_lim).min())
-        self.compiled: dict = {}
+        self.problem, self.base, self.scalar, self.checkpoint = problem, problem.base(base), scalar, checkpoint
         self.compile_s = 0.0
         self.trajectories = 0
 
-    def _executable(self, query: Query, args):
-        key = (query.derivative, query.mode, np.shape(query.thetas), np.shape(query.masses))
-        if key not in self.compiled:
-            fn = _function(
-                self.problem,
-                query.derivative,
-                query.mode if query.derivative == "gradient" else None,
-                self.scalar if query.derivative == "gradient" else None,
-                self.checkpoint,
-            )
+    def _call(self, key, fn, args, execute: bool):
+        """`fn` at `args`, compiled once per key and shapes in this process (its compile time
+        counted); with execute False, only compiled, and the outputs' shapes returned."""
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        key = key + (str(tree), tuple((np.shape(x), str(x.dtype)) for x in leaves))
+        if key not in _EXECUTABLES:
             start = time.perf_counter()
-            self.compiled[key] = fn.lower(*args).compile()
+            _EXECUTABLES[key] = fn.lower(*args).compile()
             self.compile_s += time.perf_counter() - start
-        return self.compiled[key]
+        if execute:
+            return _EXECUTABLES[key](*args)
+        return jax.eval_shape(fn, *args)
+
+    def _kinds(self, query: Query) -> tuple[str | None, str | None]:
+        """(the runs' kind, the algebra's kind) of a query."""
+        if query.derivative == "jacobian":
+            return "jvp", "jacobian"
+        if query.derivative == "gradient":
+            return ("jvp", "forward") if query.mode == "forward" else ("vjp", "reverse")
+        return None, None
+
+    def _params(self, query: Query):
+        thetas = jnp.asarray(query.thetas, jnp.float64)
+        draws = np.asarray(query.draws, np.float64)
+        draws = draws[:, None] if draws.ndim == 1 else draws
+        params = params_for(self.base, self.problem, thetas, draws)
+        return thetas.shape[0], len(draws), params
+
+    def _runs(self, params, kind, execute, cotangents=None) -> list:
+        """Every scenario's runs: metrics (and tangents, or pulled-back gradients with `cotangents`)."""
+        out = []
+        for i, config in enumerate(self.problem.configs):
+            fn = _runs(config, kind, self.problem.names, self.checkpoint)
+            args = (params,) if kind != "vjp" else (params, cotangents[i])
+            result = self._call(("runs", config, kind, self.problem.names, self.checkpoint), fn, args, execute)
+            # On the host: the runs' outputs are split over the devices, the algebra runs on one.
+            out.append(jax.device_get(result) if execute else result)
+        return out
 
     def warm_up(self, query: Query) -> None:
         """Compile for this query's kind and shapes now (not on anyone's clock)."""
-        self._executable(query, self._args(query))
-
-    def _args(self, query: Query):
-        dtype = jnp.float64
-        return (jnp.asarray(query.thetas, dtype), jnp.asarray(query.masses, dtype), self.base, query.weights)
+        self._evaluate(query, execute=False)
 
     def __call__(self, query: Query) -> Evaluation:
-        args = self._args(query)
-        out = jax.device_get(self._executable(query, args)(*args))
-        C, M = np.shape(query.thetas)[0], np.shape(query.masses)[0]
-        self.trajectories += C * M
-        f, c = np.asarray(out["f"]), np.asarray(out["c"]).reshape(C, M)
-        # Every run of the candidate did not diverge (`Metrics.finite`), and its objective and constraints are finite.
-        valid = np.asarray(out["finite"]).reshape(C, M).all(1) & np.isfinite(f) & np.isfinite(c).all(1)
-        min_grip = np.asarray(out["min_grip"]).reshape(C, M)
-        holds = valid & (np.nan_to_num(min_grip, nan=-np.inf) >= self.F_lim - HOLD_TOLERANCE).all(1)
-        jac = None
-        if "jacobian" in out:
-            jac = {k: np.asarray(v) for k, v in out["jacobian"].items()}
+        return self._evaluate(query)
+
+    def _evaluate(self, query: Query, execute: bool = True) -> Evaluation | None:
+        run_kind, kind = self._kinds(query)
+        K, M, params = self._params(query)
+        bounds = bound_values(self.problem, params)
+        scalar = self.scalar if kind in ("forward", "reverse") else None
+        program = _algebra(self.problem, kind, scalar, K)
+        algebra = lambda *args: self._call(("algebra", self.problem, kind, scalar, K), program, args, execute)
+        value = gradient = jac = None
+        if run_kind is None:
+            real, rest = algebra(self._runs(params, None, execute), bounds)
+        elif kind == "jacobian":
+            metrics, tangents = zip(*self._runs(params, "jvp", execute))
+            real, rest, jac = algebra(list(metrics), list(tangents), bounds)
+        elif kind == "forward":
+            metrics, tangents = zip(*self._runs(params, "jvp", execute))
+            value, gradient, (real, rest) = algebra(list(metrics), list(tangents), bounds, query.weights)
+        else:  # the values, their cotangents from the algebra, then the pull-back through the runs
+            runs = self._runs(params, None, execute)
+            value, cotangents, (real, rest) = algebra(runs, bounds, query.weights)
+            pulled = self._runs(params, "vjp", execute, cotangents)
+            # Per sample (n, K * M), start-major: each candidate's gradient sums over its draws.
+            gradient = sum(g for _, g in pulled).reshape(-1, K, M).sum(2).T if execute else None
+        if not execute:
+            return None
+        self.trajectories += K * M * len(self.problem.scenarios)
+        real, rest, value, gradient, jac = jax.device_get((real, rest, value, gradient, jac))
+        f, c, parts = np.asarray(real["f"]), np.asarray(real["c"]), np.asarray(real["parts"])
+        # Every run of the candidate did not diverge, and its objective and constraints are finite.
+        finite = np.nan_to_num(np.asarray(rest["finite"], float), nan=0.0) > 0.5
+        valid = finite.all(1) & np.isfinite(f) & np.isfinite(c).all(1) & np.isfinite(parts).all(1)
         return Evaluation(
             f=f,
             c=c,
-            peak=np.asarray(out["peak"]).reshape(C, M),
-            rms_lag=np.asarray(out["rms_lag"]).reshape(C, M),
-            min_grip=min_grip,
+            parts=parts,
             valid=valid,
-            holds=holds,
-            min_swi=np.asarray(out["min_swi"]).reshape(C, M),
-            value=None if "value" not in out else np.asarray(out["value"]),
-            gradient=None if "gradient" not in out else np.asarray(out["gradient"]),
-            jacobian=jac,
+            holds=valid & np.asarray(rest["holds"]).all(1),
+            min_swi=np.asarray(real["min_swi"]),
+            value=None if value is None else np.asarray(value),
+            gradient=None if gradient is None else np.asarray(gradient),
+            jacobian=None if jac is None else {k: np.asarray(v) for k, v in jac.items()},
         )

@@ -20,7 +20,7 @@ def plot_history(history: dict, path: str, title: str) -> None:
     """Each start's (or lane's) objective and grip constraint against the step.
 
     A history with `phi` (screen-SLP) shows each lane's merit and its grip margin (the least Filippov
-    weight over the training masses); otherwise the objective f and the grip shortfall."""
+    weight over the training draws); otherwise the objective f and the worst constraint."""
     plt = _pyplot()
     if not history.get("step"):  # a tuner that keeps no per-step history (`Tuner.history`)
         fig, a = plt.subplots(figsize=(6, 2.5), constrained_layout=True)
@@ -48,21 +48,22 @@ def plot_history(history: dict, path: str, title: str) -> None:
         a.set_ylim(0.9 * finite.min(), 1.1 * min(finite.max(), 10 * np.percentile(finite, 90)))
     a.set_xlabel("step")
     if lanes:
-        a.set_ylabel("merit: max peak + w_lag x max lag + penalties [N]")
+        a.set_ylabel("merit: the objective (hard aggregates) + penalties [N]")
         a.set_title(
-            "merit per lane (dots: holds at every training mass;\na jump: the lane starts from a new screen point)",
+            "merit per lane (dots: meets every requirement at every training draw;\n"
+            "a jump: the lane starts from a new screen point)",
             fontsize=10,
         )
-        b.set_ylabel("grip margin: least Filippov weight over the masses")
+        b.set_ylabel("grip margin: least Filippov weight over the draws")
         b.axhline(history.get("margin_asked", [0.0])[0], color="0.3", ls="--", lw=1, label="the margin asked for")
         b.set_ylim(-0.05, 1.05)
         b.set_title("the grip constraint: 0 once the grip is lost", fontsize=10)
         b.legend(fontsize=8)
     else:
-        a.set_ylabel("objective f: smooth max of peak + w_lag x lag [N]")
-        a.set_title("objective per start (dots: holds at every training mass)", fontsize=10)
-        b.set_ylabel("worst RMS grip shortfall below F_lim [N] (floored at 1e-4)")
-        b.set_title("the constraint: 0 while the grip holds", fontsize=10)
+        a.set_ylabel("objective f (training aggregates) [N]")
+        a.set_title("objective per start (dots: meets every requirement at every training draw)", fontsize=10)
+        b.set_ylabel("worst constraint: grip shortfall [N], others in their unit (floored at 1e-4)")
+        b.set_title("the requirements: met at <= 0 (the grip: 0 while it holds)", fontsize=10)
     a.set_xlabel("step")
     a.legend(fontsize=7, ncol=2)
     b.set_xlabel("step")
@@ -72,8 +73,12 @@ def plot_history(history: dict, path: str, title: str) -> None:
     _save(fig, path)
 
 
-def plot_traces(runs: dict, masses, F_lim: float, F_max: float, path: str) -> None:
-    """Grip forces (hard model) for each gain set in `runs` (label -> Trajectory over `masses`)."""
+def plot_traces(
+    runs: dict, cases: list, F_lim: float, F_max: float, path: str, scenario: str = "carry", window=(0.5, 2.0)
+) -> None:
+    """Grip forces (hard model) for each gain set in `runs` (label -> Trajectory over the batch
+    described by `cases`, one label per sample), with the scenario's grip window shaded."""
+    masses = cases
     plt = _pyplot()
     labels = list(runs)
     fig, axes = plt.subplots(
@@ -91,12 +96,13 @@ def plot_traces(runs: dict, masses, F_lim: float, F_max: float, path: str) -> No
         F = np.asarray(traj.aux.F)  # (n, 2, masses)
         for i, m in enumerate(masses):
             ax = axes[i, j]
-            ax.axvspan(0.5, 2.0, color="0.93", zorder=0, label="grip window [0.5, 2] s")
+            if window is not None:
+                ax.axvspan(*window, color="0.93", zorder=0, label=f"grip window [{window[0]:g}, {window[1]:g}] s")
             ax.plot(t, F[:, 0, i], color="tab:blue", lw=1, label="F_L")
             ax.plot(t, F[:, 1, i], color="tab:red", lw=1, label="F_R")
             ax.axhline(F_lim, color="k", ls="--", lw=1, label=f"F_lim = {F_lim:g} N")
             ax.axhline(F_max, color="grey", ls=":", lw=1, label=f"F_max = {F_max:g} N")
-            ax.set_title(f"{label}, M_b = {m:.3g} kg", fontsize=10)
+            ax.set_title(f"{label}, {m}", fontsize=9)
             top = max(np.nanmax(np.asarray(r.aux.F)[:, :, i]) for r in runs.values())
             ax.set_ylim(-0.03 * top, 1.05 * top)
             if j == 0:
@@ -104,7 +110,7 @@ def plot_traces(runs: dict, masses, F_lim: float, F_max: float, path: str) -> No
             if i == len(masses) - 1:
                 ax.set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=7, loc="upper right")
-    fig.suptitle("carry scenario, hard switch and contact (float64): grip forces before and after tuning")
+    fig.suptitle(f"{scenario} scenario, hard switch and contact (float64): grip forces before and after tuning")
     _save(fig, path)
 
 
@@ -139,45 +145,45 @@ def plot_race(result: dict, path: str) -> None:
     _save(fig, path)
 
 
-def plot_pareto(rows: list[dict], path: str) -> None:
-    """Worst-case peak force against worst-case RMS lag on the held-out masses: each tuner's answers
-    (rows of kind "front", one per lag weight) over the cloud of every candidate that held in
-    training (rows of kind "cloud")."""
+def plot_pareto(rows: list[dict], path: str, x_label: str, y_label: str) -> None:
+    """The first objective term (y) against the last (x) on the held-out draws: each tuner's answers
+    (rows of kind "front", one per weight of the last term) over the cloud of every candidate that
+    met the requirements in training (rows of kind "cloud"). Rows carry `x`, `y`, `weight`, `holds`."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5), constrained_layout=True)
     cloud = [r for r in rows if r["kind"] == "cloud"]
     held = [r for r in cloud if r["holds"]]
     fronts = list(dict.fromkeys(r["tuner"] for r in rows if r["kind"] == "front"))
     tuned = [r for r in rows if r["kind"] == "front" and r["holds"]]
-    # Zoom on the tuners' answers: the cloud's worst holding sets reach kN and metres.
-    x_max = 3 * max([r["rms_lag_mm"] for r in tuned] or [50.0])
-    y_max = 2 * max([r["peak_grip"] for r in tuned] or [100.0])
-    shown = [r for r in held if r["rms_lag_mm"] <= x_max and r["peak_grip"] <= y_max]
+    # Zoom on the tuners' answers: the cloud's worst sets reach kN and metres.
+    x_max = 3 * max([r["x"] for r in tuned] or [50.0])
+    y_max = 2 * max([r["y"] for r in tuned] or [100.0])
+    shown = [r for r in held if r["x"] <= x_max and r["y"] <= y_max]
     if cloud:
         ax.scatter(
-            [r["rms_lag_mm"] for r in shown],
-            [r["peak_grip"] for r in shown],
+            [r["x"] for r in shown],
+            [r["y"] for r in shown],
             marker="x",
             color="grey",
             s=14,
-            label=f"candidates that held in training ({len(held)} of {len(cloud)} hold here, "
+            label=f"candidates that met the requirements in training ({len(held)} of {len(cloud)} meet them here, "
             f"{len(held) - len(shown)} off the axes)",
         )
     for tuner, (color, marker) in style(fronts).items():
-        pts = sorted((r for r in rows if r["tuner"] == tuner and r["kind"] == "front"), key=lambda r: r["rms_lag_mm"])
+        pts = sorted((r for r in rows if r["tuner"] == tuner and r["kind"] == "front"), key=lambda r: r["x"])
         ok = [r for r in pts if r["holds"]]
         if ok:
             ax.plot(
-                [r["rms_lag_mm"] for r in ok],
-                [r["peak_grip"] for r in ok],
+                [r["x"] for r in ok],
+                [r["y"] for r in ok],
                 marker + "-",
                 color=color,
-                label=f"{tuner}, one run per lag weight",
+                label=f"{tuner}, one run per weight",
             )
             for r in ok:
                 ax.annotate(
-                    f"w={r['w_lag']:g}",
-                    (r["rms_lag_mm"], r["peak_grip"]),
+                    f"w={r['weight']:g}",
+                    (r["x"], r["y"]),
                     fontsize=7,
                     xytext=(4, 4),
                     textcoords="offset points",
@@ -186,18 +192,18 @@ def plot_pareto(rows: list[dict], path: str) -> None:
         lost = [r for r in pts if not r["holds"]]
         if lost:
             ax.scatter(
-                [r["rms_lag_mm"] for r in lost],
-                [r["peak_grip"] for r in lost],
+                [r["x"] for r in lost],
+                [r["y"] for r in lost],
                 facecolors="none",
                 edgecolors=color,
                 marker=marker,
-                label=f"{tuner}: loses the grip on a held-out mass",
+                label=f"{tuner}: misses a requirement on a held-out draw",
             )
     ax.set_xlim(0, x_max)
     ax.set_ylim(0, y_max)
-    ax.set_xlabel("worst-case RMS lag over held-out masses [mm]")
-    ax.set_ylabel("worst-case peak grip force over held-out masses [N]")
-    ax.set_title("the peak / lag front (hard model, held-out masses)")
+    ax.set_xlabel(x_label)
+    ax.set_ylabel(y_label)
+    ax.set_title("the front of the objective's terms (hard model, held-out draws)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     _save(fig, path)

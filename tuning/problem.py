@@ -1,22 +1,28 @@
-"""What the tuner optimises (how a result is judged: `tuning.judge`).
+"""What the tuner optimises: a `Problem`, plain data (how a result is judged: `tuning.judging`).
 
-The problem is constrained, on the hard model itself:
+A problem says which controller parameters are tuned (`names`, within `bounds`), which others are
+held (`fixed`), what the answer must hold for (`uncertain` parameters, each a box), on which
+`scenarios`, what is minimised and what is required:
 
-    minimise   f = smax_m peak_m + w_lag * smax_m lag_m          (worst case over the body masses)
-    subject to c_m = 0 at every training mass m                  (the grip never drops below F_lim)
+    minimise   f = sum_j weight_j * over_j(metric_j)                 over the draws x scenarios
+    subject to every requirement at every training draw              (metric >= or <= its bound)
 
-- `peak_m` is the largest grip force of the run [N] and `lag_m` the RMS tracking lag [mm] at body
-  mass m; `smax` is a smooth maximum (or CVaR) over the mass batch, so the worst mass is what is
-  pushed down, not the average one.
-- `c_m = sqrt(slip_m + eps^2) - eps` is the RMS shortfall of the grip below F_lim over the grip
-  window [N]: zero exactly while the grip holds (the hard switch slides on F = F_lim), smooth, and
-  growing with both the depth and the duration of a loss.
-- Training runs the problem's `config`: by default the hard switch and contact under the
-  sliding-mode integrator at the coarsest step within the accuracy tolerances (2e-3 s).
-- `held_out_masses` and `validation_masses` are the grids `tuning.judge` judges and selects on;
-  the training grid never hits them.
+- `over` is `max`, `mean` or `cvar:ALPHA` (the mean of the worst ALPHA share). In training a `max`
+  is a smooth maximum (`aggregate`, `temperature`), so the worst draw is pushed down, not the average
+  one; judging takes the hard one.
+- A requirement is a constraint per training draw, c <= 0, in the metric's unit (lengths in mm):
+  `metric - bound` or `bound - metric`. The grip requirement `min_grip >= F_lim` is special: on
+  F = F_lim the hard switch slides and min_grip sits exactly there, flat, so training uses the RMS
+  shortfall below F_lim over the grip window, `c = sqrt(slip + eps^2) - eps` (zero while the grip
+  holds, smooth, growing with the depth and duration of a loss), and judging allows `HOLD_TOLERANCE`.
+- Training runs the problem's switch, under the sliding-mode integrator for the hard one at each
+  scenario's coarsest step within the accuracy tolerances; `tuning.design` places the training,
+  validation and held-out draws, which never meet.
 
-Parameters enter in log space, so every iterate is positive.
+The default problem: tune the 14 controller parameters (per-robot gains and impedance), minimise
+the worst peak grip plus 1.5 N per mm of the worst RMS lag over body masses 0.5 to 5 kg (log-uniform)
+on the carry scenario, with the grip held at F_lim. Parameters enter in log space, so every iterate
+is positive.
 """
 
 from __future__ import annotations
@@ -29,14 +35,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import devices
+from coopjax import devices, scenarios
 from coopjax.config import Config
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS
-from coopjax.objectives import Metrics
-from coopjax.params import PARAMETERS, Params, split_name
+from coopjax.objectives import METRICS
+from coopjax.objectives.base import missing_windows
+from coopjax.params import PARAMETERS, Params, make_params, split_name
 from coopjax.simulation import metrics_of
 from coopjax.stability import stable_dt
+from tuning import design, problem_file
+from tuning.design import Uncertain
 
 GAINS = ("K_GP", "K_GI", "tau", "G_e")
 GAINS_PER_ROBOT = tuple(f"{g}_{r}" for g in GAINS for r in "LR")
@@ -48,7 +57,7 @@ BOUNDS = {"K_GP": (0.005, 100.0), "K_GI": (0.001, 10.0), "tau": (0.05, 50.0), "G
 # integrator's limit can dip a little below F_lim while the motion enters the surface.
 HOLD_TOLERANCE = 0.01  # N
 # s: filippov met the accuracy tolerances on 16 of 16 samples at 2e-3 and 1e-3 (docs/model.md, "Step
-# size"). Training takes the coarsest; judging (`tuning.judge`) takes 1e-3.
+# size"). Training takes the coarsest; judging (`tuning.judging`) takes 1e-3.
 TRAIN_DT = INTEGRATORS["filippov"].converged_dt[("carry", "hard")]
 SURROGATE_DT = 2.5e-4  # s: plain RK4 on the smooth surrogates (docs/tuning.md)
 SWITCHES = ("hard", "blend", "smooth", "straight_through")
@@ -100,119 +109,350 @@ def expand_params(text: str) -> tuple[str, ...]:
     return tuple(x.strip() for x in text.split(",") if x.strip())
 
 
-TRAINING_METRICS = ("min_grip", "peak_grip", "slip", "rms_lag", "min_swi")  # what the problem is built from
+TRAINING_METRICS = ("min_grip", "peak_grip", "peak_hold", "slip", "rms_lag", "min_swi")
+SCALE = {"m": 1e-3}  # a requirement's constraint is in its metric's unit, except lengths: in mm
+OVERS = ("max", "mean", "cvar")
+KINDS = ("at_least", "at_most")
+
+
+def surrogate_config(switch: str, dt: float | None, scenario: str = "carry") -> Config:
+    """The training runs of one scenario: the hard model at its coarsest converged step, or a smooth
+    surrogate at its own."""
+    if dt is None:
+        converged = INTEGRATORS["filippov"].converged_dt.get((scenario, "hard")) or 1e-3
+        dt = converged if switch == "hard" else SURROGATE_DT
+    return Config(scenario, switch=switch, dt=dt, dtype="float64")
 
 
 def training_config(switch: str = "hard", dt: float | None = None) -> Config:
-    """The training runs: the hard model at the coarsest converged step, or a surrogate at its own."""
-    return Config(
-        "carry",
-        switch=switch,
-        dt=dt if dt is not None else (TRAIN_DT if switch == "hard" else SURROGATE_DT),
-        dtype="float64",
-        metrics=TRAINING_METRICS,
-    )
+    """The carry scenario's training runs (every metric)."""
+    return surrogate_config(switch, dt)
+
+
+class Objective(NamedTuple):
+    """A term of the objective: `weight` x `over` (over draws and scenarios) of `metric`."""
+
+    metric: str
+    over: str = "max"  # max | mean | cvar:ALPHA
+    weight: float = 1.0  # objective units (N) per unit of the metric
+    scenarios: tuple | None = None  # None: every scenario of the problem
+
+    @property
+    def alpha(self) -> float | None:
+        return float(self.over.split(":")[1]) if self.over.startswith("cvar:") else None
+
+
+class Requirement(NamedTuple):
+    """A hard requirement: `metric` at least or at most `bound` at every draw of its scenarios."""
+
+    metric: str
+    kind: str  # at_least | at_most
+    bound: float | str  # in the metric's unit, or a parameter's name (its value, per draw)
+    scenarios: tuple | None = None
+
+    @property
+    def is_grip(self) -> bool:
+        """The grip requirement min_grip >= F_lim: trained on the shortfall, judged with a tolerance."""
+        return self.metric == "min_grip" and self.kind == "at_least" and self.bound == "F_lim"
+
+    @property
+    def text(self) -> str:
+        where = f" on {', '.join(self.scenarios)}" if self.scenarios else ""
+        return f"{self.metric} {'>=' if self.kind == 'at_least' else '<='} {self.bound}{where}"
+
+    def bound_values(self, params):
+        """The bound per sample of `params` (a per-robot parameter: its lower robot's value for
+        at_least, as the grip's own check of F_lim takes it, the higher one's for at_most)."""
+        if not isinstance(self.bound, str):
+            return self.bound
+        value = params.get(self.bound)
+        if jnp.ndim(value) == 2:  # (robots, batch)
+            value = value.min(0) if self.kind == "at_least" else value.max(0)
+        return value
+
+
+DEFAULT_MINIMISE = (Objective("peak_grip", "max", 1.0), Objective("rms_lag", "max", 1500.0))
+DEFAULT_REQUIRE = (Requirement("min_grip", "at_least", "F_lim"),)
+DEFAULT_UNCERTAIN = (Uncertain("M_b", "loguniform", 0.5, 5.0),)
 
 
 @dataclasses.dataclass(frozen=True)
 class Problem:
-    """Static description of the tuning problem; hashable, so it can be a jit static argument."""
+    """A tuning problem, as data; hashable, so it can be a jit static argument.
+
+    Build it by keywords, or read it from a file with `Problem.from_toml` (docs/tuning.md gives the
+    file's keys); `validate` checks it, `to_toml` writes it back.
+
+    Args:
+      names: the tuned parameters (controller parameters, or per robot `K_GP_L` ...).
+      scenarios: the registered scenarios every draw runs.
+      uncertain: `Uncertain` boxes the answer must hold over (`tuning.design` places the draws).
+      minimise: the objective's `Objective` terms.
+      require: the `Requirement`s, each at every draw.
+      bounds: (name, low, high) search boxes replacing the defaults of `bounds`.
+      fixed: (name, value) parameters held at a value (besides the defaults of Table 1).
+      n_draws: training draws per step (with several uncertain parameters: besides the corners).
+      jitter: fresh training draws every step; False: a fixed design.
+      margin: training draws span the box widened by this share (selection by half of it).
+      switch: the training model: hard (sliding-mode integrator) or a smooth surrogate.
+      dt: the training step, s (None: each scenario's coarsest converged step, or SURROGATE_DT).
+      aggregate: how training smooths a `max` term: smoothmax, cvar, max or mean.
+      temperature: smoothmax's softness, in objective units (N).
+      cvar_alpha: aggregate="cvar": the worst share averaged.
+    """
 
     # The four gains of the paper alone cannot bring the worst peak under about 31 N while holding
     # the grip at 5 kg (docs/tuning.md); per-robot gains and the controller's impedance can.
     names: tuple[str, ...] = GAINS_PER_ROBOT + IMPEDANCE
-    masses: tuple = ("loguniform", 0.5, 5.0)  # the range the grip must hold over (and is judged on)
-    n_masses: int = 8  # training strata: each keeps its own multiplier
-    jitter: bool = True  # a fresh mass in each stratum every step; False: the strata's midpoints
-    margin: float = 0.05  # the training grid spans [low / (1 + margin), high (1 + margin)]
-    config: Config = training_config()  # the training runs (scenario carry)
-    w_lag: float = 1.5  # N of worst peak per mm of worst RMS lag
-    aggregate: str = "smoothmax"  # over the mass batch: "smoothmax", "cvar", "max" or "mean"
-    temperature: float = 0.5  # N: softness of smoothmax (it exceeds the max by at most T log M)
-    cvar_alpha: float = 0.25  # cvar: the mean of the worst alpha share of the masses
+    scenarios: tuple[str, ...] = ("carry",)
+    uncertain: tuple = DEFAULT_UNCERTAIN
+    minimise: tuple = DEFAULT_MINIMISE
+    require: tuple = DEFAULT_REQUIRE
+    bounds: tuple = ()
+    fixed: tuple = ()
+    n_draws: int = 8
+    jitter: bool = True
+    margin: float = 0.05
+    switch: str = "hard"
+    dt: float | None = None
+    aggregate: str = "smoothmax"
+    temperature: float = 0.5
+    cvar_alpha: float = 0.25
 
     def __post_init__(self):
-        object.__setattr__(self, "names", tuple(self.names))  # hashable, whatever the caller passed
-        object.__setattr__(self, "masses", tuple(self.masses))
+        # Hashable, whatever the caller passed (lists from a file, arrays).
+        tup = lambda x: tuple(x) if isinstance(x, (list, tuple)) else (x,)
+        object.__setattr__(self, "names", tup(self.names))
+        object.__setattr__(self, "scenarios", tup(self.scenarios))
+        object.__setattr__(self, "uncertain", tuple(Uncertain(*u) for u in self.uncertain))
+        object.__setattr__(self, "minimise", tuple(_objective(o) for o in self.minimise))
+        object.__setattr__(self, "require", tuple(_requirement(r) for r in self.require))
+        object.__setattr__(self, "bounds", tuple((str(n), float(a), float(b)) for n, a, b in self.bounds))
+        object.__setattr__(self, "fixed", tuple((str(n), float(v)) for n, v in self.fixed))
+
+    @classmethod
+    def from_toml(cls, path: str, **overrides) -> "Problem":
+        """Read a problem file (docs/tuning.md, "Problem files"); `overrides` replace fields. A bad
+        file raises one `InputError` naming the file, the key and the line."""
+        fields, where = problem_file.read(path)
+        if isinstance(fields.get("names"), str):
+            fields["names"] = expand_params(fields["names"])
+        try:
+            return dataclasses.replace(cls(**fields), **overrides).validate()
+        except InputError as error:
+            raise problem_file.locate(error, where) from None
+
+    def to_toml(self) -> str:
+        """The problem as a file `from_toml` reads back."""
+        return problem_file.dump(self)
+
+    # --- what the problem runs
 
     @property
-    def switch(self) -> str:
-        return self.config.switch
+    def configs(self) -> tuple[Config, ...]:
+        """The training runs of each scenario, with the metrics the problem reads there."""
+        return tuple(
+            dataclasses.replace(surrogate_config(self.switch, self.dt, s), metrics=self.metrics_on(s))
+            for s in self.scenarios
+        )
 
     @property
-    def dt(self) -> float:
+    def config(self) -> Config:
+        """The training run whose step is the longest (the one stability limits)."""
+        return max(self.configs, key=lambda c: c.dt)
+
+    @property
+    def train_dt(self) -> float:
         return self.config.dt
+
+    def metrics_on(self, scenario: str) -> tuple[str, ...]:
+        """The metrics training runs on `scenario`: the usual ones the scenario has windows for (one
+        program then serves problems that differ only in their terms and requirements), and any
+        other its terms and requirements read."""
+        names = [n for n in TRAINING_METRICS if not missing_windows(n, scenarios.get(scenario))]
+        names += [o.metric for o in self.minimise if _on(o, scenario)]
+        for r in self.require:
+            if _on(r, scenario):
+                names += ["min_grip", "slip", "min_swi"] if r.is_grip else [r.metric]
+        return tuple(dict.fromkeys(names))
+
+    def base(self, base: Params | None = None) -> Params:
+        """Table 1's parameters (or `base`) with the problem's fixed values."""
+        base = make_params(dtype="float64") if base is None else base
+        return base.replace(**dict(self.fixed)) if self.fixed else base
+
+    def box(self, name: str) -> tuple[float, float]:
+        """The search box of a tuned name."""
+        for n, low, high in self.bounds:
+            if n == name:
+                return low, high
+        return bounds(name)
+
+    def log_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = zip(*(self.box(n) for n in self.names))
+        return np.log(lo), np.log(hi)
+
+    @property
+    def uncertain_names(self) -> tuple[str, ...]:
+        return tuple(u.name for u in self.uncertain)
+
+    # --- the draws (tuning.design)
+
+    def training_draws(self, seed: int = 0, step: int = 0) -> np.ndarray:
+        """(M, p) training draws of one step, afresh per (seed, step) with `jitter`."""
+        return design.training(self.uncertain, self.n_draws, self.margin, seed, step, self.jitter)
+
+    def fixed_training_draws(self) -> np.ndarray:
+        """(M, p) training draws for a tuner that keeps them for its whole run."""
+        return design.fixed_training(self.uncertain, self.n_draws, self.margin)
+
+    def validation_draws(self) -> np.ndarray:
+        return design.validation(self.uncertain, self.margin)
+
+    def held_out_draws(self, count: int = 12) -> np.ndarray:
+        return design.held_out(self.uncertain, count)
+
+    # --- the layout of an evaluation's columns, for M draws
+
+    def objective_columns(self, M: int) -> list[np.ndarray]:
+        """Per objective term, its columns among the cases (scenario-major: case s * M + m)."""
+        return [columns_of(self.scenarios, o, M) for o in self.minimise]
+
+    def constraint_columns(self, M: int) -> list[np.ndarray]:
+        """Per requirement, its columns in the evaluation's `c` (one per draw of each of its scenarios)."""
+        out, at = [], 0
+        for r in self.require:
+            n = len(columns_of(self.scenarios, r, M))
+            out.append(np.arange(at, at + n))
+            at += n
+        return out
+
+    def grip_columns(self, M: int) -> np.ndarray:
+        """The cases of the grip requirement (where `min_swi`, the grip's margin, is read)."""
+        grip = [r for r in self.require if r.is_grip]
+        return columns_of(self.scenarios, grip[0], M) if grip else np.zeros(0, int)
+
+    def n_constraints(self, M: int) -> int:
+        return sum(len(c) for c in self.constraint_columns(M))
+
+    @property
+    def n_training(self) -> int:
+        return len(self.fixed_training_draws())
 
     def validate(self) -> "Problem":
         check_tuned_names(self.names)
-        check_mass_range(self.masses)
-        if not isinstance(self.config, Config):
-            raise InputError(f"config must be a coopjax.Config, got {type(self.config).__name__}", "config")
-        if self.config.scenario != "carry":
-            raise InputError(
-                f"the tuning problem is posed on the carry scenario, not {self.config.scenario!r}", "config"
-            )
+        if not self.scenarios:
+            raise InputError("scenario: name at least one scenario", "scenario")
+        for s in self.scenarios:
+            if s not in scenarios.SCENARIOS:
+                raise InputError(
+                    f"scenario {s!r} is not registered; choose from {', '.join(scenarios.SCENARIOS)}", "scenario"
+                )
+        if len(set(self.scenarios)) != len(self.scenarios):
+            raise InputError("scenario: a scenario is named twice", "scenario")
+        design.check(self.uncertain)
+        tuned = {split_name(n)[0] for n in self.names}
+        for u in self.uncertain:
+            if split_name(u.name)[0] in tuned:
+                raise InputError(f"uncertain: {u.name} is tuned; a parameter is tuned or uncertain, not both", u.name)
+        for n, v in self.fixed:
+            if split_name(n)[0] in tuned:
+                raise InputError(f"fixed: {n} is tuned; a parameter is tuned or fixed, not both", n)
+            if any(split_name(n)[0] == split_name(u.name)[0] for u in self.uncertain):
+                raise InputError(f"fixed: {n} is uncertain; a parameter is uncertain or fixed, not both", n)
+        make_params(**dict(self.fixed))  # each value checked by the parameter's own rule
+        for n, low, high in self.bounds:
+            if n not in self.names:
+                raise InputError(f"bounds: {n} is not tuned (tune = {', '.join(self.names)})", n)
+            if not (math.isfinite(low) and math.isfinite(high) and 0 < low < high):
+                raise InputError(
+                    f"bounds: {n} = {low:g}:{high:g}: a tuned parameter is searched in log space: 0 < LOW < HIGH", n
+                )
+        if not self.minimise:
+            raise InputError("minimise: give at least one objective term", "minimise")
+        for o in self.minimise:
+            _check_metric(o.metric, "minimise", self._on_scenarios(o))
+            if o.over not in ("max", "mean") and not (o.alpha is not None and 0 < o.alpha <= 1):
+                raise InputError(
+                    f"minimise {o.metric}: over = {o.over!r}: max, mean or cvar:ALPHA with 0 < ALPHA <= 1", "over"
+                )
+            if not (math.isfinite(o.weight) and o.weight > 0):
+                raise InputError(f"minimise {o.metric}: weight = {o.weight!r}: it must be positive", "weight")
+        for r in self.require:
+            _check_metric(r.metric, "require", self._on_scenarios(r))
+            if r.kind not in KINDS:
+                raise InputError(f"require {r.metric}: give at_least or at_most", "require")
+            if isinstance(r.bound, str):
+                split_name(r.bound)
+            elif not math.isfinite(r.bound):
+                raise InputError(f"require {r.metric}: the bound {r.bound!r} must be finite", "require")
         if self.switch not in SWITCHES:
             raise InputError(f"switch must be one of {', '.join(SWITCHES)}, not {self.switch!r}", "switch")
         if self.aggregate not in AGGREGATES:
             raise InputError(f"aggregate must be one of {', '.join(AGGREGATES)}, not {self.aggregate!r}", "aggregate")
-        if isinstance(self.n_masses, bool) or not isinstance(self.n_masses, int) or self.n_masses < 2:
-            raise InputError(f"n_masses is {self.n_masses!r}: at least 2 (the range's two ends)", "n_masses")
-        for field, value in (("w_lag", self.w_lag), ("margin", self.margin)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise InputError(f"{field} is {value!r}: it must be finite and not negative", field)
+        if isinstance(self.n_draws, bool) or not isinstance(self.n_draws, (int, np.integer)) or self.n_draws < 2:
+            raise InputError(f"n_draws is {self.n_draws!r}: at least 2 (the range's two ends)", "n_draws")
+        if not (isinstance(self.margin, (int, float)) and math.isfinite(self.margin) and self.margin >= 0):
+            raise InputError(f"margin is {self.margin!r}: it must be finite and not negative", "margin")
         if not (self.temperature > 0 and math.isfinite(self.temperature)):
             raise InputError(f"temperature is {self.temperature:g}: it must be positive", "temperature")
         if not 0 < self.cvar_alpha <= 1:
             raise InputError(f"cvar_alpha is {self.cvar_alpha:g}: it must be in (0, 1]", "cvar_alpha")
-        self.config.validate()
+        if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
+            raise InputError(f"dt is {self.dt!r}: it must be positive", "dt")
+        for c in self.configs:
+            c.validate()
         return self
 
-    @property
-    def training_range(self) -> tuple:
-        kind, low, high = self.masses
-        return kind, low / (1.0 + self.margin), high * (1.0 + self.margin)
-
-    def training_masses(self, seed: int = 0, step: int = 0) -> np.ndarray:
-        """One mass per equal-probability stratum of the widened range, drawn afresh for each
-        (seed, step) when `jitter` is on, so that over a run the batch covers the whole range (the
-        worst case can sit in a narrow band of masses) while each stratum keeps its multiplier."""
-        if not self.jitter:
-            return grid(self.training_range, self.n_masses, midpoints=True)
-        kind, low, high = self.training_range
-        u = (np.arange(self.n_masses) + np.random.default_rng([seed, step]).random(self.n_masses)) / self.n_masses
-        if kind == "loguniform":
-            return np.exp(np.log(low) + (np.log(high) - np.log(low)) * u)
-        return low + (high - low) * u
+    def _on_scenarios(self, item) -> tuple[str, ...]:
+        if item.scenarios is None:
+            return self.scenarios
+        for s in item.scenarios:
+            if s not in self.scenarios:
+                raise InputError(
+                    f"{item.metric}: scenario {s!r} is not one of the problem's ({', '.join(self.scenarios)})",
+                    "scenario",
+                )
+        return tuple(item.scenarios)
 
 
-def check_mass_range(masses) -> None:
-    kind, low, high = masses
-    if kind not in ("uniform", "loguniform") or not (math.isfinite(low) and math.isfinite(high) and 0 < low < high):
-        raise InputError(
-            f"masses {kind}:{low:g}:{high:g}: need loguniform or uniform, and 0 < LOW < HIGH (kg)", "masses"
-        )
+def _on(item, scenario: str) -> bool:
+    return item.scenarios is None or scenario in item.scenarios
 
 
-def grid(masses, count: int, midpoints: bool = False) -> np.ndarray:
-    """`count` masses over the range, ends included; or the midpoints of `count` equal strata."""
-    kind, low, high = masses
-    u = (np.arange(count) + 0.5) / count if midpoints else np.linspace(0.0, 1.0, count)
-    if kind == "loguniform":
-        return np.exp(np.log(low) + (np.log(high) - np.log(low)) * u)
-    return low + (high - low) * u
+def columns_of(all_scenarios, item, M: int) -> np.ndarray:
+    return np.concatenate([np.arange(i * M, (i + 1) * M) for i, s in enumerate(all_scenarios) if _on(item, s)])
+
+
+def _check_metric(metric: str, where: str, on: tuple[str, ...]) -> None:
+    if metric not in METRICS:
+        raise InputError(f"{where}: unknown metric {metric!r}; choose from {', '.join(METRICS)}", metric)
+    for s in on:
+        lacking = missing_windows(metric, scenarios.get(s))
+        if lacking:
+            raise InputError(
+                f"{where}: {metric} is taken over the {lacking[0]!r} window, which scenario {s!r} does not have; "
+                f"name the scenarios it applies to (scenario = [...])",
+                metric,
+            )
+
+
+def _objective(o) -> Objective:
+    o = Objective(*o) if not isinstance(o, Objective) else o
+    scen = None if o.scenarios is None else tuple([o.scenarios] if isinstance(o.scenarios, str) else o.scenarios)
+    return o._replace(weight=float(o.weight), scenarios=scen)
+
+
+def _requirement(r) -> Requirement:
+    r = Requirement(*r) if not isinstance(r, Requirement) else r
+    scen = None if r.scenarios is None else tuple([r.scenarios] if isinstance(r.scenarios, str) else r.scenarios)
+    bound = r.bound if isinstance(r.bound, str) else float(r.bound)
+    return r._replace(bound=bound, scenarios=scen)
 
 
 def held_out_masses(masses, count: int = 12) -> np.ndarray:
-    """The judging grid: ends included (the heaviest mass is the hardest). Training never hits it."""
-    return grid(masses, count)
-
-
-def validation_masses(problem: "Problem", count: int = 48) -> np.ndarray:
-    """The selection grid: the training range (the judged one widened by the margin), ends included.
-    Its masses are not on the held-out grid, and the extreme ones lie just outside the judged range,
-    so a candidate that fails at the heaviest judged mass is not chosen."""
-    return grid(problem.training_range, count)
+    """The judging grid of a body-mass range (kind, low, high): ends included."""
+    return design.held_out((Uncertain("M_b", *masses),), count)[:, 0]
 
 
 def to_log(values: dict[str, float], names) -> np.ndarray:
@@ -239,37 +479,53 @@ class Surrogate(NamedTuple):
 NARROW = Surrogate(k_F=0.1, k_c=0.1, eps_delta=2e-5)
 
 
-def params_for(base: Params, names, theta, masses, problem: Problem | None = None) -> Params:
-    """Parameter sets for starts x masses: theta is (K, n) log-values, masses (M,); batch K * M.
-
-    Sample k * M + m is start k at mass m. Per-robot names (`K_GP_L`) set one robot.
-    """
-    K, M = theta.shape[0], masses.shape[0]
-    values = {n: jnp.repeat(jnp.exp(theta[:, i]), M) for i, n in enumerate(names)}
-    extra = {}
-    if problem is not None and problem.switch != "hard":
-        extra = {k: jnp.full((K * M,), v, theta.dtype) for k, v in NARROW._asdict().items()}
-    return base.replace(M_b=jnp.tile(jnp.asarray(masses, theta.dtype), K), **values, **extra)
+def params_for(base: Params, problem: Problem, theta, draws) -> Params:
+    """Parameter sets for starts x draws: theta is (K, n) log-values, draws (M, p) values of the
+    uncertain parameters (or (M,) of the one); batch K * M, sample k * M + m is start k at draw m.
+    Per-robot names (`K_GP_L`) set one robot. `base` carries the fixed values (`Problem.base`)."""
+    K = theta.shape[0]
+    draws = jnp.asarray(draws, theta.dtype)
+    draws = draws[:, None] if draws.ndim == 1 else draws
+    M = draws.shape[0]
+    values = {n: jnp.repeat(jnp.exp(theta[:, i]), M) for i, n in enumerate(problem.names)}
+    values |= {u.name: jnp.tile(draws[:, i], K) for i, u in enumerate(problem.uncertain)}
+    if problem.switch != "hard":
+        values |= {k: jnp.full((K * M,), v, theta.dtype) for k, v in NARROW._asdict().items()}
+    if "M_b" not in values:  # every leaf carries the batch
+        values["M_b"] = jnp.full((K * M,), base.M_b, theta.dtype)
+    return base.replace(**values)
 
 
 class Terms(NamedTuple):
-    """Per start: the objective f (N), the constraints c (K, M) (N), and the per-(start, mass) metrics."""
+    """Per start k: the objective f (K,) (N); the constraints c (K, Q), one column per requirement
+    and draw (`Problem.constraint_columns`), satisfied at <= 0; the objective terms' weighted values
+    per case, `parts` (K, P) (`Problem.objective_columns`, concatenated); the grip margin `min_swi`
+    (K, G) at the grip requirement's cases; `holds` (K, Q), each requirement met by the judge's rule;
+    and every metric per case (K, S * M) (NaN where its scenario does not read it)."""
 
     f: jax.Array
     c: jax.Array
-    metrics: Metrics
+    parts: jax.Array
+    min_swi: jax.Array
+    holds: jax.Array
+    metrics: dict
 
 
-def smooth_max(x, problem: Problem, axis=-1):
+def aggregate(x, over: str, problem: Problem | None = None, axis=-1):
+    """`over` of x along `axis`: max, mean or cvar:ALPHA. With a problem (training), a max is its
+    `aggregate`: a smooth maximum by default."""
+    if over == "mean":
+        return x.mean(axis)
+    if over.startswith("cvar"):
+        alpha = float(over.split(":")[1]) if ":" in over else problem.cvar_alpha
+        k = max(1, math.ceil(alpha * x.shape[axis]))
+        return jnp.mean(jnp.sort(x, axis=axis)[..., -k:], axis=axis)
+    if problem is None or problem.aggregate == "max":
+        return x.max(axis)
     if problem.aggregate == "smoothmax":
         T = problem.temperature
         return T * jax.nn.logsumexp(x / T, axis=axis)
-    if problem.aggregate == "cvar":
-        k = max(1, math.ceil(problem.cvar_alpha * x.shape[axis]))
-        return jnp.mean(jnp.sort(x, axis=axis)[..., -k:], axis=axis)
-    if problem.aggregate == "max":
-        return x.max(axis)
-    return x.mean(axis)
+    return aggregate(x, problem.aggregate if problem.aggregate == "mean" else "cvar", problem, axis)
 
 
 def deficit(slip):
@@ -277,19 +533,84 @@ def deficit(slip):
     return jnp.sqrt(slip + EPS_DEFICIT**2) - EPS_DEFICIT
 
 
-def terms(theta, base: Params, problem: Problem, masses, checkpoint: bool | str = True) -> Terms:
-    """Objective and constraints of every start at every mass; theta is (K, n) log-values, masses
-    (M,). Pure; jit it outside. The batch is split over every local device (`devices.run`).
-    `checkpoint` is the reverse-mode memory policy of `coopjax.simulate`."""
-    masses = jnp.asarray(masses, theta.dtype)
-    K, M = theta.shape[0], masses.shape[0]
-    params = params_for(base, problem.names, theta, masses, problem)
-    m = devices.run(metrics_of(problem.config, checkpoint), params, shard_traced=True)
-    peak = m.peak_grip.reshape(K, M)
-    lag_mm = 1e3 * m.rms_lag.reshape(K, M)
-    f = smooth_max(peak, problem) + smooth_max(problem.w_lag * lag_mm, problem)
-    c = deficit(m.slip.reshape(K, M))
-    return Terms(f, c, jax.tree_util.tree_map(lambda x: x.reshape(K, M), m))
+def requirement_values(r: Requirement, metrics: dict, bound, slip=None):
+    """A requirement's constraint per case (<= 0 when met) and whether it is met by the judge's rule."""
+    value = metrics[r.metric]
+    scale = SCALE.get(METRICS[r.metric].unit, 1.0)
+    if r.is_grip:
+        return deficit(slip), value >= bound - HOLD_TOLERANCE
+    if r.kind == "at_least":
+        return (bound - value) / scale, value >= bound
+    return (value - bound) / scale, value <= bound
+
+
+def run_metrics(config: Config, params: Params, checkpoint: bool | str = True) -> dict:
+    """The training metrics of one scenario's runs, as floats (`finite` 1 or 0), over every local
+    device; under the caller's jit or derivative."""
+    m = devices.run(metrics_of(config, checkpoint), params, shard_traced=True)
+    return {n: m[n].astype(params.dtype) for n in config.metrics} | {"finite": m.finite.astype(params.dtype)}
+
+
+def bound_values(problem: Problem, params: Params) -> dict:
+    """Per requirement whose bound names a parameter: its value per sample."""
+    return {i: r.bound_values(params) for i, r in enumerate(problem.require) if isinstance(r.bound, str)}
+
+
+def combine(problem: Problem, runs: list[dict], bounds: dict, K: int) -> Terms:
+    """The problem's terms from its runs: `runs[s]` maps each metric of scenario s to its values per
+    sample (K starts x M draws, start-major), `bounds` is `bound_values`. Pure JAX: the evaluator
+    differentiates it apart from the runs, so that programs of the runs are shared between problems."""
+    B = next(iter(runs[0].values())).shape[-1]
+    M = B // K
+    dtype = next(iter(runs[0].values())).dtype
+    nan = jnp.full((K, M), jnp.nan, dtype)
+    names = dict.fromkeys(n for m in runs for n in m)
+    cases = {n: jnp.concatenate([m[n].reshape(K, M) if n in m else nan for m in runs], axis=1) for n in names}
+    parts, f = [], 0.0
+    for o, cols in zip(problem.minimise, problem.objective_columns(M)):
+        x = o.weight * cases[o.metric][:, cols]
+        parts.append(x)
+        f = f + aggregate(x, o.over, problem)
+    c, holds = [], []
+    for i, r in enumerate(problem.require):
+        cols = columns_of(problem.scenarios, r, M)
+        bound = bounds.get(i, r.bound)
+        if jnp.ndim(bound):
+            bound = jnp.tile(jnp.reshape(bound, (K, M)), (1, len(cols) // M))
+        slip = cases["slip"][:, cols] if r.is_grip else None
+        ci, hi = requirement_values(r, {r.metric: cases[r.metric][:, cols]}, bound, slip)
+        c.append(ci)
+        holds.append(hi)
+    grip = problem.grip_columns(M)
+    return Terms(
+        f=f,
+        c=jnp.concatenate(c, axis=1) if c else jnp.zeros((K, 0), dtype),
+        parts=jnp.concatenate(parts, axis=1),
+        min_swi=cases["min_swi"][:, grip] if len(grip) else jnp.zeros((K, 0), dtype),
+        holds=jnp.concatenate(holds, axis=1) if holds else jnp.zeros((K, 0), bool),
+        metrics=cases,
+    )
+
+
+def terms(theta, base: Params, problem: Problem, draws, checkpoint: bool | str = True) -> Terms:
+    """Objective and constraints of every start at every draw of every scenario; theta is (K, n)
+    log-values, draws (M, p) (or (M,) with one uncertain parameter). Pure: jit it, differentiate it
+    (`jax.grad` of a scalar of `f` and `c`, as an optax loop does). The batch is split over every
+    local device (`devices.run`).
+
+    Args:
+      theta: (K, n) log-values of `problem.names`.
+      base: every other parameter, a single set, with the problem's fixed values (`Problem.base`).
+      problem: the problem.
+      draws: the uncertain parameters' values (`Problem.training_draws`).
+      checkpoint: the reverse-mode memory policy of `coopjax.simulate`.
+
+    Returns:
+      `Terms`: f (K,), c (K, Q), parts, min_swi, holds and the metrics per case.
+    """
+    params = params_for(base, problem, theta, draws)
+    runs = [run_metrics(config, params, checkpoint) for config in problem.configs]
+    return combine(problem, runs, bound_values(problem, params), theta.shape[0])
 
 
 def starting_points(
@@ -300,7 +621,8 @@ def starting_points(
     1.5 x the training step is drawn again (up to 50 rounds), so no start begins where its very first
     step would blow up. Every tuner starts from these points."""
     names = problem.names
-    lo, hi = log_bounds(names)
+    lo, hi = problem.log_bounds()
+    base = problem.base(base)
     start = np.clip(to_log(first, names), lo, hi)
     rng = np.random.default_rng(seed)
     points = [start]
@@ -311,7 +633,7 @@ def starting_points(
         draws = a + (b - a) * rng.random((4 * count, len(names)))
         params = base.replace(M_b=np.ones(len(draws)), **{n: np.exp(draws[:, i]) for i, n in enumerate(names)})
         limit, _ = stable_dt(params, problem.config)
-        points += [d for d, ok in zip(draws, limit >= 1.5 * problem.dt) if ok]
+        points += [d for d, ok in zip(draws, limit >= 1.5 * problem.train_dt) if ok]
     if len(points) < count:
         raise InputError(
             f"found only {len(points)} stable starting points in 50 rounds; try a smaller spread", "spread"

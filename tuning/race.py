@@ -1,11 +1,11 @@
 """`coopjax tune --compare`: every registered tuner on the same problem and clock, over seeds.
 
-All tuners solve the same problem (the same model, step, training masses and box) from the same
+All tuners solve the same problem (the same model, step, training draws and box) from the same
 starting points, and each gets the wall time the reference tuner (the one `coopjax tune` runs) took
 on that seed. Compilation is done before any clock starts and reported apart. Each tuner's running
-choice, its best candidate so far by the training criterion (holds at every training mass, then
-lowest objective), is validated afterwards on the validation masses with the judging step, so the
-curves compare what each tuner would hand over at that moment, on masses none of them trained on.
+choice, its best candidate so far by the training criterion (meets every requirement at every training draw, then
+lowest objective), is validated afterwards on the validation draws with the judging step, so the
+curves compare what each tuner would hand over at that moment, on draws none of them trained on.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import math
 import numpy as np
 
 from tuning import driver
-from tuning.judge import judge, preferred
-from tuning.problem import from_log, held_out_masses, validation_masses
+from tuning.judging import judge, preferred
+from tuning.problem import from_log
 
 MAX_SNAPSHOTS = 24  # validated points per tuner and seed (log-spaced in time, the last always kept)
 
@@ -62,14 +62,15 @@ def run(
     judge_dt: float | None = None,
     budget: str = "time",
     target: str | None = None,
+    held_out_count: int = 12,
 ) -> dict:
     """Race `tuners` (name -> tuner) over `seeds`; `starts_for(seed)` gives the (K, n) starts.
     The reference tuner runs to its own end; every other tuner gets its wall time (`budget="time"`) or
     as many simulated trajectories (`"trajectories"`). Times to reach are to `target`'s final
     validated objective (default: the first other tuner)."""
     names = problem.names
-    masses = validation_masses(problem)
-    held_out = held_out_masses(problem.masses)
+    masses = problem.validation_draws()
+    held_out = problem.held_out_draws(held_out_count)
     order = [reference] + [n for n in tuners if n != reference]
     judging = {} if judge_dt is None else {"dt": judge_dt}
     per_seed, compile_s = [], {}
@@ -93,7 +94,7 @@ def run(
         finals = {name: [from_log(t, names) for t in r.tuner.candidates(r.state)] for name, r in results.items()}
         flat = [(name, t, from_log(results[name].record.thetas[i], names)) for name, s in snaps.items() for t, i in s]
         flat += [(name, None, p) for name, ps in finals.items() for p in ps]
-        verdicts = judge([p for _, _, p in flat], masses, base, problem.w_lag, **judging) if flat else []
+        verdicts = judge([p for _, _, p in flat], masses, problem, base, **judging) if flat else []
         raw = {name: [] for name in results}
         last = {name: [] for name in results}
         for (name, t, p), v in zip(flat, verdicts):
@@ -110,9 +111,7 @@ def run(
                 chosen[name], points = None, []
             curves[name] = running_min(points)
         final = {name: (c[-1][1] if c else math.inf) for name, c in curves.items()}
-        judged = {
-            name: judge(p, held_out, base, problem.w_lag, **judging).row() if p else None for name, p in chosen.items()
-        }
+        judged = {name: judge(p, held_out, problem, base, **judging).row() if p else None for name, p in chosen.items()}
         others = [n for n in order if n != reference]
         target_name = target if target in results else (others[0] if others else reference)
         reach = {name: time_to_reach(c, final[target_name]) for name, c in curves.items()}
@@ -132,9 +131,10 @@ def run(
         g = judged[reference]
         if g:
             log(
-                f"seed {seed}: {reference}'s answer on the held-out masses: holds "
-                f"{'yes' if g['holds'] else 'NO'}, worst "
-                f"min grip {g['min_grip']:.3f} N, peak {g['peak_grip']:.2f} N, lag {g['rms_lag_mm']:.2f} mm"
+                f"seed {seed}: {reference}'s answer on the held-out draws: meets every requirement "
+                f"{'yes' if g['holds'] else 'NO'}; "
+                + "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in g["requirements"])
+                + f"; objective {g['objective']:.3f} N"
             )
         log(
             f"seed {seed}: budget {budget_s:.1f} s; validated objective "
@@ -148,8 +148,8 @@ def run(
         "tuners": order,
         "reference": reference,
         "budget": budget,
-        "validation_masses": [float(m) for m in masses],
-        "held_out_masses": [float(m) for m in held_out],
+        "validation_draws": masses.tolist(),
+        "held_out_draws": held_out.tolist(),
         "compile_s": compile_s,
         "per_seed": per_seed,
         "summary": summary(per_seed, order),

@@ -52,7 +52,8 @@ class Metric:
     `init(batch_shape, dtype, ctx)` -> the accumulator (any pytree of arrays);
     `update(acc, obs, params, ctx)` -> the accumulator after sample `obs` (an `Observation`);
     `finalize(acc, ctx)` -> the value, shape of the batch.
-    `parameters` are any the metric reads that the model does not have (declared with it).
+    `parameters` are any the metric reads that the model does not have (declared with it);
+    `windows` the scenario windows it is taken over (a scenario without one of them gives NaN).
     """
 
     name: str
@@ -62,6 +63,7 @@ class Metric:
     update: Callable[[Any, Observation, Params, Context], Any]
     finalize: Callable[[Any, Context], jax.Array]
     parameters: Mapping[str, Spec] = dataclasses.field(default_factory=dict)
+    windows: tuple[str, ...] = ()
 
 
 METRICS: dict[str, Metric] = {}
@@ -82,6 +84,11 @@ def register(metric: Metric) -> Metric:
     declare(f"metric {metric.name}", dict(metric.parameters))
     METRICS[metric.name] = metric
     return metric
+
+
+def missing_windows(metric: str, scenario: Scenario) -> tuple[str, ...]:
+    """The windows `metric` needs that `scenario` lacks (there the metric is NaN)."""
+    return tuple(w for w in METRICS[metric].windows if w not in scenario.windows)
 
 
 def check_names(names) -> tuple[str, ...]:

@@ -2,6 +2,8 @@
 
 - min_grip [N]: the least grip force over the grip window, both robots;
 - peak_grip [N]: the largest grip force over the whole run;
+- peak_hold [N]: the largest grip force over the hold window (the squeeze, the carry and the
+  release), so that a re-contact with the drifting body near the horizon does not count;
 - slip [N^2]: the time mean over the grip window of sum_i max(0, F_lim - F_i)^2, the lower limit;
 - crush [N^2]: the time mean over the grip window of sum_i max(0, F_i - F_max)^2, the upper band;
 - impact [N^2]: as crush, over the rest of the run after the grip window (release and re-contact).
@@ -100,7 +102,13 @@ def _min_finalize(acc, ctx):
 
 MIN_GRIP = register(
     Metric(
-        "min_grip", "N", "least grip force over the grip window (both robots)", _min_init, _min_update, _min_finalize
+        "min_grip",
+        "N",
+        "least grip force over the grip window (both robots)",
+        _min_init,
+        _min_update,
+        _min_finalize,
+        windows=("grip",),
     )
 )
 
@@ -123,6 +131,36 @@ PEAK_GRIP = register(
         lambda b, d, ctx: _robots(b, d, -jnp.inf),
         _peak_update,
         lambda peak, ctx: peak.max(0),
+    )
+)
+
+
+# --- peak_hold: peak_grip over the steps inside the hold window
+
+
+def _peak_hold_update(peak, obs, params, ctx):
+    F = jnp.where(ctx.inside("hold", obs.k), obs.aux.F, -jnp.inf)
+    if obs.path is not None:  # the step's path, while the step lies in the window
+        jump = jnp.maximum(obs.path.start.max(0), obs.path.end.max(0))
+        F = jnp.maximum(F, jnp.where(_step_inside(ctx, "hold", obs.k), jump, -jnp.inf))
+    return jnp.maximum(peak, F)
+
+
+def _peak_hold_finalize(peak, ctx):
+    if ctx.window("hold") is None:
+        return jnp.full(peak.shape[1:], jnp.nan, peak.dtype)
+    return peak.max(0)
+
+
+PEAK_HOLD = register(
+    Metric(
+        "peak_hold",
+        "N",
+        "largest grip force over the hold window (squeeze, carry and release), impacts inside a step included",
+        lambda b, d, ctx: _robots(b, d, -jnp.inf),
+        _peak_hold_update,
+        _peak_hold_finalize,
+        windows=("hold",),
     )
 )
 
@@ -171,6 +209,7 @@ SLIP = register(
         "N^2",
         "time mean over the grip window of sum_i max(0, F_lim - F_i)^2",
         *_window_mean(lambda F, p: jnp.maximum(p.F_lim - F, 0.0), "grip"),
+        windows=("grip",),
     )
 )
 CRUSH = register(
@@ -180,6 +219,7 @@ CRUSH = register(
         "time mean over the grip window of sum_i max(0, F_i - F_max)^2",
         *_window_mean(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), "grip"),
         parameters=F_MAX,
+        windows=("grip",),
     )
 )
 
@@ -210,5 +250,6 @@ IMPACT = register(
         _impact_update,
         _impact_finalize,
         parameters=F_MAX,
+        windows=("grip",),
     )
 )

@@ -38,5 +38,6 @@ MIN_SWI = register(
         lambda b, d, ctx: jnp.full((2,) + tuple(b), jnp.inf, d),
         _update,
         _finalize,
+        windows=("grip",),
     )
 )

@@ -34,5 +34,6 @@ RMS_LAG = register(
         lambda b, d, ctx: jnp.zeros(tuple(b), d),
         _update,
         _finalize,
+        windows=("lag",),
     )
 )

@@ -85,8 +85,9 @@ class Scenario:
 
     `command(params, clock)` gives one (v_cmd, a_cmd, x_ref) per robot, L first, each (B,).
     `windows` maps a window's name to its (start, end) in s: the grip metrics use "grip", the
-    tracking lag "lag"; a metric whose window a scenario lacks is NaN there. With `after_reach`, a
-    robot's grip samples count only from the moment its force first reaches F_lim.
+    tracking lag "lag", the squeeze's peak "hold"; a metric whose window a scenario lacks is NaN
+    there. With `after_reach`, a robot's grip samples count only from the moment its force first
+    reaches F_lim.
     `parameters` are the amplitudes the command reads (shared by both robots).
     """
 

@@ -25,7 +25,8 @@ CARRY = register(
         name="carry",
         T=4.0,
         command=command,
-        windows={"grip": (0.5, 2.0), "lag": (2.5, 4.0)},
+        # hold: squeeze, carry and release, not the settling after it (where the drifting body can come back).
+        windows={"grip": (0.5, 2.0), "lag": (2.5, 4.0), "hold": (0.0, 3.0)},
         description="pick, carry 0.5 m, release, settle: the tuning scenario, T = 4 s",
         parameters={
             "A_g": Spec(0.1, "m/s", False, "finite", "carry scenario: grip amplitude"),

@@ -3,7 +3,7 @@
 Each start is its own problem side by side: its own multipliers, Adam moments and step scale. A start
 whose loss or gradient is not finite goes back halfway to its last finite iterate and halves its step
 scale; after `max_retries` rejections in a row it is frozen there. Each start keeps its best iterate
-that held the grip at every training mass; those and the final iterates are its candidates.
+that met every requirement at every training draw; those and the final iterates are its candidates.
 """
 
 from __future__ import annotations
@@ -19,8 +19,7 @@ import optax
 
 from coopjax.errors import InputError
 from tuning import constrained
-from tuning.problem import log_bounds
-from tuning.tuners.base import Query, Tuner, register, setting
+from tuning.tuners.base import Query, Tuner, register, setting, worst_constraint
 
 # Forward mode's cost grows with the number of tuned parameters, reverse mode's does not, but it
 # compiles longer: measured, forward wins below 4 parameters and in short runs, reverse at 8 and 14
@@ -37,7 +36,7 @@ class State(NamedTuple):
     retries: np.ndarray  # (K,) consecutive rejections; a start beyond max_retries is frozen
     opt_state: optax.OptState
     mult: constrained.Multipliers
-    best_theta: np.ndarray  # (K, n) best iterate that held the grip at every training mass
+    best_theta: np.ndarray  # (K, n) best iterate that met every requirement at every training draw
     best_f: np.ndarray  # (K,) its objective (inf: none yet)
     history: dict  # per step: f, holds, worst shortfall, L (each a list over starts), rejected
     seed: int
@@ -111,7 +110,7 @@ class AdamAL(Tuner):
             np.ones(K),
             np.zeros(K, int),
             self.optimizer().init(jnp.asarray(theta)),
-            constrained.init((K, problem.n_masses), self.rho),
+            constrained.init((K, problem.n_constraints(len(problem.training_draws()))), self.rho),
             theta.copy(),
             np.full(K, np.inf),
             history,
@@ -124,7 +123,7 @@ class AdamAL(Tuner):
             return None
         return Query(
             state.theta,
-            state.problem.training_masses(state.seed, state.step),
+            state.problem.training_draws(state.seed, state.step),
             "gradient",
             self.resolved_mode(state.theta.shape[1]),
             state.mult,
@@ -132,7 +131,7 @@ class AdamAL(Tuner):
 
     def tell(self, state, query, ev):
         K = state.theta.shape[0]
-        lo, hi = log_bounds(state.problem.names)
+        lo, hi = state.problem.log_bounds()
         L, grad, f, c = ev.value, ev.gradient, ev.f, ev.c
         ok = np.isfinite(L) & np.isfinite(grad).all(1) & np.isfinite(c).all(1)
         holds = ok & ev.holds
@@ -162,7 +161,7 @@ class AdamAL(Tuner):
             ("theta", state.theta.tolist()),
             ("f", _floats(f)),
             ("holds", holds.tolist()),
-            ("shortfall", _floats(c.max(1))),
+            ("shortfall", _floats(worst_constraint(ev))),
             ("L", _floats(L)),
             ("rejected", int((~ok).sum())),
         ):
@@ -187,8 +186,9 @@ class AdamAL(Tuner):
         i = int(np.argmin(np.where(ev.holds, ev.f, np.inf))) if ev.holds.any() else None
         best = f"best holding start {i}: f {ev.f[i]:.4g} N" if i is not None else "no start holds yet"
         return (
-            f"step {state.step:4d}/{self.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts hold at every training "
-            f"mass, {state.history['rejected'][-1]} rejected; {best}"
+            f"step {state.step:4d}/{self.steps}  {int(ev.holds.sum())}/{len(ev.holds)} starts meet every requirement "
+            "at every "
+            f"training draw, {state.history['rejected'][-1]} rejected; {best}"
         )
 
     def expected_evaluations(self, starts):

@@ -16,32 +16,47 @@ class Query(NamedTuple):
     """What a tuner wants evaluated next."""
 
     thetas: np.ndarray  # (C, n) log-parameters
-    masses: np.ndarray  # (M,) body masses, kg
+    draws: np.ndarray  # (M, p) values of the problem's uncertain parameters ((M,) with one of them)
     derivative: str | None = None  # None; "jacobian" (of every output, forward mode); "gradient" (of `scalar`)
     mode: str = "reverse"  # for "gradient": "forward" or "reverse" mode
     weights: Any = None  # for "gradient": the dynamic arguments of the tuner's `scalar`
 
 
 class Evaluation(NamedTuple):
-    """Per candidate c and mass m (all on the problem's training model)."""
+    """Per candidate c, on the problem's training model, at the query's draws of every scenario
+    (the columns' layout: `Problem.objective_columns`, `constraint_columns`, `grip_columns`)."""
 
-    f: np.ndarray  # (C,) the problem's objective: smooth max of peak + w_lag x smooth max of lag, N
-    c: np.ndarray  # (C, M) grip shortfall, N (0 while the grip holds)
-    peak: np.ndarray  # (C, M) N
-    rms_lag: np.ndarray  # (C, M) m
-    min_grip: np.ndarray  # (C, M) N
+    f: np.ndarray  # (C,) the problem's objective (N): its terms' training aggregates, summed
+    c: np.ndarray  # (C, Q) the requirements' constraints, per requirement and draw: met where <= 0
+    parts: np.ndarray  # (C, P) the objective terms' weighted values per case (N), term after term
     valid: np.ndarray  # (C,) no run diverged, and f and c are finite
-    holds: np.ndarray  # (C,) valid, and the grip holds at every mass
+    holds: np.ndarray  # (C,) valid, and every requirement is met at every draw (the judge's rule)
+    min_swi: np.ndarray  # (C, G) the grip margin (least Filippov weight) at the grip requirement's cases
     value: np.ndarray | None = None  # (C,) the tuner's scalar, with "gradient"
     gradient: np.ndarray | None = None  # (C, n), with "gradient"
-    jacobian: dict | None = None  # {"peak", "rms_lag", "c", "min_swi", "f"}: (C, M, n) ((C, n) for f), with "jacobian"
-    min_swi: np.ndarray | None = None  # (C, M) the grip margin: least Filippov weight over the grip window
+    jacobian: dict | None = None  # {"f": (C, n), "c", "parts", "min_swi": (C, columns, n)}, with "jacobian"
 
 
-def setting(default, help: str, flag: str | None = None, choices: tuple | None = None):
+def worst_constraint(ev: Evaluation) -> np.ndarray:
+    """(C,) the largest constraint value (> 0: a requirement is missed; NaN without requirements)."""
+    return ev.c.max(1) if ev.c.shape[1] else np.full(len(ev.f), np.nan)
+
+
+def least_margin(ev: Evaluation) -> np.ndarray:
+    """(C,) the least grip margin over the grip requirement's cases (NaN without one)."""
+    return ev.min_swi.min(1) if ev.min_swi.shape[1] else np.full(len(ev.f), np.nan)
+
+
+def concatenate(evaluations) -> Evaluation:
+    """Evaluations of several batches of candidates, as one (values only)."""
+    return Evaluation(*(None if x[0] is None else np.concatenate(x) for x in zip(*evaluations)))
+
+
+def setting(default, help: str, flag: str | None = None, choices: tuple | None = None, kind: type | None = None):
     """A tuner's setting: a dataclass field whose metadata `coopjax tune` turns into a flag (the
-    same metadata `coopjax.Config` uses). `flag` None: not on the command line; `choices`: a closed set."""
-    return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices))
+    same metadata `coopjax.Config` uses). `flag` None: not on the command line; `choices`: a closed
+    set; `kind`: the flag's type where the default (None) does not say it."""
+    return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices, kind=kind))
 
 
 class Tuner(abc.ABC):
@@ -74,6 +89,11 @@ class Tuner(abc.ABC):
     @abc.abstractmethod
     def candidates(self, state) -> list[np.ndarray]:
         """Log-parameter vectors worth validating, in the tuner's order of preference."""
+
+    def ends(self) -> bool:
+        """Whether a run with these settings ends on its own (a plain run needs it); by default,
+        `plain_run`."""
+        return self.plain_run
 
     def history(self, state) -> dict:
         """Per step, what the history figure of `coopjax tune` shows: lists under `step`, `f` (or

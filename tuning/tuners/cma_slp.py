@@ -5,10 +5,10 @@ in narrow bands of mass) but closes in on an optimum slowly, where the worst mas
 constraint are active at once. A trust-region step on the worst case's epigraph (`screen_slp.program`,
 with forward-mode Jacobians of every per-mass output) does that last part in a few iterations. So:
 
-1. `every` generations of CMA-ES (the `CMAES` tuner: IPOP, cma's augmented Lagrangian, fresh masses
+1. `every` generations of CMA-ES (the `CMAES` tuner: IPOP, cma's augmented Lagrangian, fresh draws
    each generation);
 2. `polish` Sl1LP iterations from CMA-ES's best holding candidate (or from the last polished point,
-   while CMA-ES has found nothing better), on the training grid of masses, with `radii` trial steps
+   while CMA-ES has found nothing better), on the fixed training draws, with `radii` trial steps
    per iteration in one batch;
 3. each accepted polished point is injected into CMA-ES's next population (`cma`'s `inject`), so the
    search distribution moves towards it; then back to 1.
@@ -20,8 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from tuning.problem import grid, log_bounds
-from tuning.tuners.base import Query, Tuner, register
+from tuning.tuners.base import Query, Tuner, least_margin, register, worst_constraint
 from tuning.tuners.cmaes import CMAES
 from tuning.tuners.screen_slp import ScreenSLP, _outputs, merit, trial_steps, trust_update
 
@@ -30,7 +29,7 @@ from tuning.tuners.screen_slp import ScreenSLP, _outputs, merit, trial_steps, tr
 class State:
     cma: object  # the CMAES tuner's state
     phase: str  # "cma", "jacobian" or "trials"
-    masses: np.ndarray  # the polish's training grid
+    draws: np.ndarray  # the polish's training draws
     problem: object
     generations: int = 0  # since the last polish
     theta: np.ndarray | None = None  # the polished iterate
@@ -66,15 +65,15 @@ class CMAESPolished(Tuner):
     swi_penalty: float = ScreenSLP.swi_penalty
     accept: float = ScreenSLP.accept
 
-    def _phi(self, out, problem):
-        return merit(out, problem.w_lag, self.penalty, self.swi_penalty, self.swi_margin)
+    def _phi(self, out, state):
+        return merit(out, state.problem, len(state.draws), self.penalty, self.swi_penalty, self.swi_margin)
 
     def init(self, problem, starts, seed):
         history = {k: [] for k in ("step", "f", "holds", "shortfall", "phi", "radius", "margin", "accepted")}
         return State(
             self.cma.init(problem, starts, seed),
             "cma",
-            grid(problem.training_range, problem.n_masses),
+            problem.fixed_training_draws(),
             problem,
             history=history,
         )
@@ -83,8 +82,8 @@ class CMAESPolished(Tuner):
         if state.phase == "cma":
             return self.cma.ask(state.cma)
         if state.phase == "jacobian":
-            return Query(state.theta[None].copy(), state.masses, "jacobian")
-        return Query(state.trials.copy(), state.masses)
+            return Query(state.theta[None].copy(), state.draws, "jacobian")
+        return Query(state.trials.copy(), state.draws)
 
     def tell(self, state, query, ev):
         return {"cma": self._tell_cma, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
@@ -107,16 +106,16 @@ class CMAESPolished(Tuner):
     def _tell_jacobian(self, state, query, ev):
         out = _outputs(ev)
         ok = bool(ev.valid[0]) and all(np.isfinite(v).all() for v in out.values())
-        phi = float(self._phi(out, state.problem)[0]) if ok else np.inf
+        phi = float(self._phi(out, state)[0]) if ok else np.inf
         self._keep(state, bool(ev.holds[0]), phi, state.theta)
         for key, value in (
             ("step", len(state.history["step"])),
             ("f", [float(ev.f[0])]),
             ("holds", [bool(ev.holds[0])]),
-            ("shortfall", [float(ev.c.max())]),
+            ("shortfall", [float(worst_constraint(ev)[0])]),
             ("phi", [phi]),
             ("radius", [state.radius]),
-            ("margin", [float(ev.min_swi.min())]),
+            ("margin", [float(least_margin(ev)[0])]),
         ):
             state.history[key].append(value)
         if not ok:
@@ -124,8 +123,10 @@ class CMAESPolished(Tuner):
             return state
         here = {k: v[0] for k, v in out.items()} | {"phi": phi}
         state.current = here
-        lo, hi = log_bounds(state.problem.names)
-        state.trials, state.predicted = trial_steps(self, state.theta, here, state.radius, lo, hi, state.problem.w_lag)
+        lo, hi = state.problem.log_bounds()
+        state.trials, state.predicted = trial_steps(
+            self, state.theta, here, state.radius, lo, hi, state.problem, len(state.draws)
+        )
         if state.predicted[0] <= 0:  # converged: wait for a better CMA-ES candidate
             state.radius, state.phase = 0.0, "cma"
         else:
@@ -135,7 +136,7 @@ class CMAESPolished(Tuner):
     def _tell_trials(self, state, query, ev):
         out = _outputs(ev)
         ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
-        phi = np.where(ok, self._phi(out, state.problem), np.inf)
+        phi = np.where(ok, self._phi(out, state), np.inf)
         j, state.radius = trust_update(
             self, state.theta, state.radius, state.trials, state.predicted, state.current["phi"], phi, ok
         )

@@ -1,9 +1,9 @@
 """CMA-ES (the `cma` package) in log space, with the grip constraint handled by cma's own
-augmented Lagrangian (`cma.ConstrainedFitnessAL`), and IPOP restarts. It writes no log files and
+augmented Lagrangian (`cma.ConstrainedFitnessAL`) for the requirements, and IPOP restarts. It writes no log files and
 changes neither the working folder nor anything outside cma.
 
 Each generation of `popsize` candidates is one batch, on the gradient tuner's mass draws: generation
-g sees the masses of step g. A diverged run is infeasible and bad, not missing. The population is
+g sees the training draws of step g. A diverged run is infeasible and bad, not missing. The population is
 cma's recommended 4 + 3 ln n by default; when a run meets one of cma's own stopping criteria it
 restarts with twice the population (IPOP-CMA-ES, Auger and Hansen 2005), from the next of the given
 starts, which every tuner shares.
@@ -18,7 +18,6 @@ import warnings
 import numpy as np
 
 from coopjax.errors import InputError
-from tuning.problem import log_bounds
 from tuning.tuners.base import Query, Tuner, register
 
 BAD = 1e6  # the objective given to CMA-ES for a candidate whose run diverged
@@ -81,7 +80,7 @@ class CMAES(Tuner):
     ipop: bool = True  # restart with twice the population when a run stops
 
     def _start(self, problem, x0, seed, popsize):
-        lo, hi = log_bounds(problem.names)
+        lo, hi = problem.log_bounds()
         es = strategy(x0, self.sigma0, lo, hi, seed + 1, popsize)  # first: it refuses a missing cma in one line
         import cma
 
@@ -107,7 +106,7 @@ class CMAES(Tuner):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             X = np.asarray(state.es.ask())
-        return Query(X, state.problem.training_masses(state.seed, state.generation))
+        return Query(X, state.problem.training_draws(state.seed, state.generation))
 
     def tell(self, state, query, ev):
         X, cache = query.thetas, state.fun.cache

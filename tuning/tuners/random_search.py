@@ -6,8 +6,9 @@ import dataclasses
 
 import numpy as np
 
-from tuning.problem import log_bounds
-from tuning.tuners.base import Query, Tuner, register
+from coopjax.errors import InputError
+
+from tuning.tuners.base import Query, Tuner, register, setting
 
 
 @dataclasses.dataclass
@@ -24,9 +25,23 @@ class State:
 class RandomSearch(Tuner):
     name = "random search"
     description = "log-uniform draws in the search box"
+    plain_run = True  # with --generations: a baseline, or the cheapest end-to-end run of a problem
 
     block: int = 8  # candidates per evaluation
-    generations: int | None = None
+    generations: int | None = setting(
+        None,
+        "blocks of 8 candidates drawn (a plain run needs it; the race: until the budget ends)",
+        "--generations",
+        kind=int,
+    )
+
+    def __post_init__(self):
+        g = self.generations
+        if g is not None and (isinstance(g, bool) or not isinstance(g, (int, np.integer)) or g < 1):
+            raise InputError(f"generations is {g!r}: a whole number, at least 1", "generations")
+
+    def ends(self) -> bool:
+        return self.generations is not None
 
     def init(self, problem, starts, seed):
         return State(np.random.default_rng(seed), 0, seed, problem, [])
@@ -34,10 +49,10 @@ class RandomSearch(Tuner):
     def ask(self, state):
         if self.generations is not None and state.generation >= self.generations:
             return None
-        lo, hi = log_bounds(state.problem.names)
+        lo, hi = state.problem.log_bounds()
         return Query(
             lo + (hi - lo) * state.rng.random((self.block, len(lo))),
-            state.problem.training_masses(state.seed, state.generation),
+            state.problem.training_draws(state.seed, state.generation),
         )
 
     def tell(self, state, query, ev):

@@ -2,37 +2,39 @@
 Jacobians: the simulator's two strengths, one after the other.
 
 1. **Screen.** The given starts and `screen` more points in the box around the first start
-   (x/÷ e^spread), run at every training mass in batches of the trials' shape (one compiled program
+   (x/÷ e^spread), run at every training draw in batches of the trials' shape (one compiled program
    for both). With `search="cma"` (the default) the first batch is the starts and scrambled-Sobol
    points, and every later batch is a generation of CMA-ES (the `cma` package: population one
    batch, initial step `sigma0`, bounded by the box) minimising the merit phi below: the same number
    of runs as a Sobol screen, spent where the merit is low. With `search="sobol"` every point is a
    Sobol point. The `local` best of all points screened are kept, no two closer than `diverse` (log
    units, max norm), so the local solves do not all refine one basin; the next ones wait in a queue.
-2. **Local solve.** The worst case over masses has a kink wherever two masses are worst at once, and
-   a gradient step on a smooth maximum zigzags across it. Its epigraph form has none:
+2. **Local solve.** The worst case over the draws has a kink wherever two draws are worst at once,
+   and a gradient step on a smooth maximum zigzags across it. Its epigraph form has none (shown for
+   the default problem; every `max` term gets its epigraph variable, a `cvar` term the
+   Rockafellar-Uryasev form, a `mean` term stays linear, every requirement is a constraint per draw):
 
-       minimise   t + w_lag s                               over (theta, t, s)
-       subject to peak_m <= t,  lag_m <= s,                 at every training mass m
-                  c_m <= 0,  min_swi_m >= swi_margin        (the grip holds, with authority to spare)
+       minimise   t_peak + t_lag                            over (theta, t)
+       subject to peak_m <= t_peak,  w lag_m <= t_lag,      at every training draw m
+                  c_m <= 0,  min_swi_m >= swi_margin        (the requirements; the grip with authority to spare)
 
-   Each iteration linearises every per-mass output with its exact Jacobian (forward mode, all
+   Each iteration linearises every per-draw output with its exact Jacobian (forward mode, all
    tangents in one pass) and solves the linear program for the step within a trust region
-   (|d|_inf <= r, and the box). The grip constraints are elastic, priced at `penalty` N per N of
-   shortfall and `swi_penalty` N per unit of margin, so the program is feasible from any start.
-   Why the margin: while the grip holds, the shortfall c is 0 and flat, so a linear model of c alone
-   sees no constraint and steps to where the grip is lost. The least Filippov weight `min_swi` is the
-   distance to that loss, with a derivative.
+   (|d|_inf <= r, and the box). The constraints are elastic, priced at `penalty` N per unit of
+   violation (N for forces, mm for lengths) and `swi_penalty` N per unit of margin, so the program is
+   feasible from any start. Why the margin: while the grip holds, the shortfall c is 0 and flat, so a
+   linear model of c alone sees no constraint and steps to where the grip is lost. The least Filippov
+   weight `min_swi` is the distance to that loss, with a derivative.
 3. **Trials.** A Jacobian costs many primal runs, so each iteration tries the programs' steps at
    r, r/2, ... (`radii` of them) in one batch of values, and keeps the one with the lowest merit
 
-       phi = max_m peak_m + w_lag max_m lag_m + penalty sum_m c_m + swi_penalty sum_m max(0, swi_margin - min_swi_m)
+       phi = sum_j weight_j over_j(metric_j) + penalty sum max(0, c) + swi_penalty sum max(0, swi_margin - min_swi)
 
    among those whose fall is at least `accept` of the predicted one. The radius doubles after a full
    step that matched its prediction, and drops below the shortest one tried when none is kept (Sl1LP:
    Fletcher and Sainz de la Maza, 1989, with several radii per model).
 
-The masses are fixed for the whole run (the training range's grid, ends included: the heaviest mass
+The draws are fixed for the whole run (`Problem.fixed_training_draws`: a grid with its ends, the heaviest mass
 is where the grip is hardest), so every comparison is of the same function. The local solves run
 side by side in one batch (lanes), each with its own radius; a lane whose program promises nothing
 has converged and takes the screen's next point.
@@ -49,8 +51,8 @@ from scipy.optimize import linprog
 from scipy.stats import qmc
 
 from coopjax.errors import InputError
-from tuning.problem import grid, log_bounds
-from tuning.tuners.base import Evaluation, Query, Tuner, register, setting
+from tuning.problem import aggregate
+from tuning.tuners.base import Evaluation, Query, Tuner, concatenate, least_margin, register, setting, worst_constraint
 from tuning.tuners.cmaes import strategy
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
@@ -61,7 +63,7 @@ BAD = 1e6  # the merit CMA-ES is told for a point whose run diverged
 class State:
     phase: str  # "screen", then "jacobian" and "trials" in turn, then "done"
     step: int  # Jacobian evaluations told so far (local iterations)
-    masses: np.ndarray  # (M,) the training masses, fixed for the run
+    draws: np.ndarray  # (M, p) the training draws, fixed for the run
     starts: np.ndarray  # (K0, n) the given starts (screened with the Sobol points)
     theta: np.ndarray | None = None  # (K, n) each lane's iterate
     radius: np.ndarray | None = None  # (K,) its trust region, log units; 0: converged or dead
@@ -81,52 +83,98 @@ class State:
     es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
 
 
-def merit(ev_like: dict, w_lag, penalty, swi_penalty, swi_margin):
-    """phi per candidate from (C, M) outputs peak, lag, c, swi."""
-    gap = np.maximum(0.0, swi_margin - ev_like["swi"])
-    return (
-        ev_like["peak"].max(1)
-        + w_lag * ev_like["lag"].max(1)
-        + penalty * ev_like["c"].sum(1)
-        + swi_penalty * gap.sum(1)
-    )
+def segments(problem, M: int) -> list[tuple[slice, str]]:
+    """The objective terms' columns in an evaluation's `parts` for M draws, with each term's `over`."""
+    out, at = [], 0
+    for o, cols in zip(problem.minimise, problem.objective_columns(M)):
+        out.append((slice(at, at + len(cols)), o.over))
+        at += len(cols)
+    return out
 
 
-def program(theta, out: dict, radius, lo, hi, w_lag, penalty, swi_penalty, swi_margin):
+def merit(out: dict, problem, M: int, penalty, swi_penalty, swi_margin):
+    """phi per candidate: the objective with hard aggregates, plus the priced violations."""
+    phi = sum(np.asarray(aggregate(out["parts"][:, seg], over)) for seg, over in segments(problem, M))
+    gap = np.maximum(0.0, swi_margin - out["swi"])
+    return phi + penalty * np.maximum(out["c"], 0.0).sum(1) + swi_penalty * gap.sum(1)
+
+
+def program(theta, out: dict, radius, lo, hi, problem, M, penalty, swi_penalty, swi_margin):
     """The trust-region linear program at one point (`out`: its outputs, Jacobians and merit phi):
     (d, predicted fall of phi).
 
-    Variables (d, t, s, e, g): minimise t + w_lag s + penalty sum e + swi_penalty sum g subject to
-    peak + J_peak d <= t, lag + J_lag d <= s, c + J_c d <= e, swi_margin - swi - J_swi d <= g,
-    e, g >= 0, |d|_inf <= radius within the box.
+    Variables: the step d; per `max` term its epigraph t; per `cvar:ALPHA` term the threshold eta
+    and the excesses u of its k = ceil(ALPHA N) worst cases (Rockafellar-Uryasev); per constraint
+    column its elastic e >= 0; per grip case its margin gap g >= 0. A `mean` term is linear in d.
+        minimise  sum t + sum (eta + sum u / k) + mean terms + penalty sum e + swi_penalty sum g
+        subject to  part + J d <= t (max), part + J d <= eta + u (cvar), c + J_c d <= e,
+                    swi_margin - swi - J_swi d <= g, |d|_inf <= radius within the box.
     """
-    M, n = out["J_peak"].shape
-    cost = np.concatenate([np.zeros(n), [1.0, w_lag], np.full(M, penalty), np.full(M, swi_penalty)])
-    zeros, ones, eye, none = np.zeros((M, 1)), np.ones((M, 1)), np.eye(M), np.zeros((M, M))
-    A = np.block(
-        [
-            [out["J_peak"], -ones, zeros, none, none],
-            [out["J_lag"], zeros, -ones, none, none],
-            [out["J_c"], zeros, zeros, -eye, none],
-            [-out["J_swi"], zeros, zeros, none, -eye],
-        ]
-    )
-    b = np.concatenate([-out["peak"], -out["lag"], -out["c"], out["swi"] - swi_margin])
+    n = len(theta)
+    rows, rhs, cost, extra_bounds, const = [], [], [], [], 0.0
+    blocks = []  # per auxiliary variable group: its size
+
+    def add(count, price, bounds):
+        start = n + sum(blocks)
+        blocks.append(count)
+        cost.extend(np.broadcast_to(price, (count,)).tolist())
+        extra_bounds.extend([bounds] * count)
+        return start
+
+    linear = np.zeros(n)
+    pending = []  # (J rows, part values, variable columns with -1) for inequality rows
+    for seg, over in segments(problem, M):
+        J, x = out["J_parts"][seg], out["parts"][seg]
+        if over == "mean":
+            linear += J.mean(0)
+            const += float(x.mean())
+        elif over == "max":
+            t = add(1, 1.0, (None, None))
+            pending.append((J, -x, [[t]] * len(x)))
+        else:
+            k = max(1, int(np.ceil(float(over.split(":")[1]) * len(x))))
+            eta = add(1, 1.0, (None, None))
+            u = add(len(x), 1.0 / k, (0.0, None))
+            pending.append((J, -x, [[eta, u + i] for i in range(len(x))]))
+    Q = out["c"].shape[0]
+    if Q:
+        e = add(Q, penalty, (0.0, None))
+        pending.append((out["J_c"], -out["c"], [[e + i] for i in range(Q)]))
+    G = out["swi"].shape[0]
+    if G:
+        g = add(G, swi_penalty, (0.0, None))
+        pending.append((-out["J_swi"], out["swi"] - swi_margin, [[g + i] for i in range(G)]))
+    size = n + sum(blocks)
+    for J, b, minus in pending:
+        block = np.zeros((len(b), size))
+        block[:, :n] = J
+        for i, cols in enumerate(minus):
+            block[i, cols] = -1.0
+        rows.append(block)
+        rhs.append(b)
+    c_vec = np.concatenate([linear, np.asarray(cost)])
     box = [(max(-radius, low - x), min(radius, high - x)) for x, low, high in zip(theta, lo, hi)]
-    bounds = box + [(None, None), (None, None)] + [(0.0, None)] * (2 * M)
-    solution = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs")
+    solution = linprog(
+        c_vec,
+        A_ub=np.concatenate(rows) if rows else None,
+        b_ub=np.concatenate(rhs) if rhs else None,
+        bounds=box + extra_bounds,
+        method="highs",
+    )
     if solution.status != 0:
         return np.zeros(n), 0.0
-    return solution.x[:n], float(out["phi"] - solution.fun)
+    return solution.x[:n], float(out["phi"] - (solution.fun + const))
 
 
-def trial_steps(tuner, theta, here: dict, radius, lo, hi, w_lag):
+def trial_steps(tuner, theta, here: dict, radius, lo, hi, problem, M):
     """One point's trials: the programs' steps at radius, radius / 2, ... (`tuner.radii` of them),
     with their predicted falls of phi; past the first radius whose program promises nothing, the
     trials stay at theta with a predicted fall of 0. `tuner` carries the merit's settings."""
     trials, predicted = np.repeat(theta[None], tuner.radii, 0), np.zeros(tuner.radii)
     for j in range(tuner.radii):
-        d, fall = program(theta, here, radius / 2**j, lo, hi, w_lag, tuner.penalty, tuner.swi_penalty, tuner.swi_margin)
+        d, fall = program(
+            theta, here, radius / 2**j, lo, hi, problem, M, tuner.penalty, tuner.swi_penalty, tuner.swi_margin
+        )
         if fall <= 1e-9 * max(1.0, abs(here["phi"])):  # nothing left to gain in the model
             break
         trials[j], predicted[j] = np.clip(theta + d, lo, hi), fall
@@ -163,11 +211,10 @@ def diverse_best(thetas, phi, count, distance):
 
 
 def _outputs(ev) -> dict:
-    # The merit prices the lag per mm (w_lag is N per mm): its "lag" is the RMS lag in mm.
-    out = {"peak": ev.peak, "lag": 1e3 * ev.rms_lag, "c": ev.c, "swi": ev.min_swi}
+    out = {"parts": ev.parts, "c": ev.c, "swi": ev.min_swi}
     if ev.jacobian is not None:
         J = ev.jacobian
-        out |= {"J_peak": J["peak"], "J_lag": 1e3 * J["rms_lag"], "J_c": J["c"], "J_swi": J["min_swi"]}
+        out |= {"J_parts": J["parts"], "J_c": J["c"], "J_swi": J["min_swi"]}
     return out
 
 
@@ -179,25 +226,17 @@ def _central_differences(query, ev, K, h):
     centre = lambda x: rows(x)[:, 0]
     slope = lambda x: np.moveaxis((rows(x)[:, 1 : n + 1] - rows(x)[:, n + 1 :]) / (2 * h), 1, -1)
     valid = rows(ev.valid).all(1)
-    jac = {
-        "peak": slope(ev.peak),
-        "rms_lag": slope(ev.rms_lag),
-        "c": slope(ev.c),
-        "min_swi": slope(ev.min_swi),
-        "f": slope(ev.f),
-    }
+    jac = {k: slope(getattr(ev, k)) for k in ("parts", "c", "min_swi", "f")}
     lanes = Evaluation(
         f=centre(ev.f),
         c=centre(ev.c),
-        peak=centre(ev.peak),
-        rms_lag=centre(ev.rms_lag),
-        min_grip=centre(ev.min_grip),
+        parts=centre(ev.parts),
         valid=valid,
         holds=centre(ev.holds) & valid,
-        jacobian=jac,
         min_swi=centre(ev.min_swi),
+        jacobian=jac,
     )
-    return Query(centre(query.thetas), query.masses, "jacobian"), lanes
+    return Query(centre(query.thetas), query.draws, "jacobian"), lanes
 
 
 SEARCHES = ("cma", "sobol")
@@ -239,7 +278,7 @@ class ScreenSLP(Tuner):
     radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
     max_radius: float = 1.0
     penalty: float = 100.0  # N of merit per N of grip shortfall at one mass
-    swi_margin: float = 0.1  # the least Filippov weight asked for at every training mass
+    swi_margin: float = 0.1  # the least Filippov weight asked for at every training draw of the grip requirement
     swi_penalty: float = 20.0  # N of merit per unit of margin missing at one mass
     accept: float = 0.1  # least share of the predicted fall a step must achieve
     # "exact": forward-mode Jacobians; "fd": central differences of width fd_step (log units), 2n + 1
@@ -247,8 +286,8 @@ class ScreenSLP(Tuner):
     jacobian: str = "exact"
     fd_step: float = 1e-3
 
-    def _phi(self, out, problem):
-        return merit(out, problem.w_lag, self.penalty, self.swi_penalty, self.swi_margin)
+    def _phi(self, out, state):
+        return merit(out, state.problem, len(state.draws), self.penalty, self.swi_penalty, self.swi_margin)
 
     def __post_init__(self):
         if self.jacobian not in ("exact", "fd"):
@@ -264,12 +303,12 @@ class ScreenSLP(Tuner):
         return state.history
 
     def init(self, problem, starts, seed):
-        lo, hi = log_bounds(problem.names)
+        lo, hi = problem.log_bounds()
         starts = np.clip(np.asarray(starts, np.float64), lo, hi)
-        masses = grid(problem.training_range, problem.n_masses)
+        draws = problem.fixed_training_draws()
         history = {k: [] for k in ("step", "f", "holds", "shortfall", "phi", "radius", "margin", "accepted")}
         history["margin_asked"] = [self.swi_margin]
-        state = State("screen", 0, masses, starts, history=history, seed=seed, problem=problem)
+        state = State("screen", 0, draws, starts, history=history, seed=seed, problem=problem)
         state.screen_all = self.screen_points(state)
         if self.search == "cma":
             a, b = self._box(state)
@@ -299,7 +338,7 @@ class ScreenSLP(Tuner):
 
     def _box(self, state):
         """The screen's box (log units): x/÷ e^spread around the first start, within the search box."""
-        lo, hi = log_bounds(state.problem.names)
+        lo, hi = state.problem.log_bounds()
         first = state.starts[0]
         return np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
 
@@ -316,19 +355,19 @@ class ScreenSLP(Tuner):
             # In batches of the trials' shape: one compiled program serves both.
             done, batch = sum(len(q) for q, _ in state.screen_log), self.local * self.radii
             if self.search == "cma" and done >= self._seeded(state):
-                return Query(self._generation(state), state.masses)
-            return Query(state.screen_all[done : done + batch], state.masses)
+                return Query(self._generation(state), state.draws)
+            return Query(state.screen_all[done : done + batch], state.draws)
         if state.phase == "screen only":  # no local solve (the ablation): the screen goes on until the budget ends
-            return Query(self._more_points(state), state.masses)
+            return Query(self._more_points(state), state.draws)
         if state.phase == "jacobian" and state.step < self.steps:
             if self.jacobian == "fd":  # each lane, then it moved by +h and -h along each parameter: values only
                 K, n = state.theta.shape
                 shifts = np.concatenate([np.zeros((1, n)), self.fd_step * np.eye(n), -self.fd_step * np.eye(n)])
-                return Query((state.theta[:, None] + shifts[None]).reshape(-1, n), state.masses)
+                return Query((state.theta[:, None] + shifts[None]).reshape(-1, n), state.draws)
             # Copies: the log keeps the query, and the lanes' arrays change in place.
-            return Query(state.theta.copy(), state.masses, "jacobian")
+            return Query(state.theta.copy(), state.draws, "jacobian")
         if state.phase == "trials":
-            return Query(state.trials.reshape(-1, state.trials.shape[-1]).copy(), state.masses)
+            return Query(state.trials.reshape(-1, state.trials.shape[-1]).copy(), state.draws)
         return None
 
     def _more_points(self, state):
@@ -360,7 +399,7 @@ class ScreenSLP(Tuner):
     def _ok_phi(self, state, ev):
         out = _outputs(ev)
         ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
-        return out, ok, np.where(ok, self._phi(out, state.problem), np.inf)
+        return out, ok, np.where(ok, self._phi(out, state), np.inf)
 
     def _tell_screen(self, state, query, ev):
         if self.search == "cma" and sum(len(q) for q, _ in state.screen_log) >= self._seeded(state):  # a generation
@@ -369,8 +408,8 @@ class ScreenSLP(Tuner):
         if sum(len(q) for q, _ in state.screen_log) < len(state.screen_all):
             return state
         thetas = np.concatenate([q for q, _ in state.screen_log])
-        ev = Evaluation(*(None if x[0] is None else np.concatenate(x) for x in zip(*(e for _, e in state.screen_log))))
-        query = Query(thetas, state.masses)
+        ev = concatenate([e for _, e in state.screen_log])
+        query = Query(thetas, state.draws)
         state.screen_log = []
         _, ok, phi = self._ok_phi(state, ev)
         ranked = diverse_best(query.thetas, phi, self.local * (1 + self.refills), self.diverse)
@@ -412,10 +451,10 @@ class ScreenSLP(Tuner):
             ("step", state.step),
             ("f", [float(x) for x in np.where(ok, ev.f, np.inf)]),
             ("holds", [bool(x) for x in ev.holds]),
-            ("shortfall", [float(x) for x in ev.c.max(1)]),
+            ("shortfall", [float(x) for x in worst_constraint(ev)]),
             ("phi", phi.tolist()),
             ("radius", state.radius.tolist()),
-            ("margin", [float(x) for x in np.where(ok, ev.min_swi.min(1), np.nan)]),
+            ("margin", [float(x) for x in np.where(ok, least_margin(ev), np.nan)]),
         ):
             state.history[key].append(value)
         state.step += 1
@@ -423,7 +462,7 @@ class ScreenSLP(Tuner):
 
     def _plan(self, state):
         """The next trials of every live lane (one per radius), and refills for converged lanes."""
-        lo, hi = log_bounds(state.problem.names)
+        lo, hi = state.problem.log_bounds()
         K, n = state.theta.shape
         state.trials = np.repeat(state.theta[:, None], self.radii, 1)
         state.predicted = np.zeros((K, self.radii))
@@ -431,7 +470,7 @@ class ScreenSLP(Tuner):
         for k in np.flatnonzero((state.radius > 0) & ~state.pending):
             here = {key: value[k] for key, value in cur.items()}
             state.trials[k], state.predicted[k] = trial_steps(
-                self, state.theta[k], here, state.radius[k], lo, hi, state.problem.w_lag
+                self, state.theta[k], here, state.radius[k], lo, hi, state.problem, len(state.draws)
             )
             if state.predicted[k, 0] <= 0:  # converged
                 state.radius[k] = 0.0
@@ -503,7 +542,8 @@ class ScreenSLP(Tuner):
             s = state.screened
             best = f"best merit {s['best_phi']:.4g} N" if s["best_phi"] is not None else "none ran"
             return (
-                f"screen: {s['points']} points, {s['finite']} ran, {s['holding']} hold at every training mass; {best}; "
+                f"screen: {s['points']} points, {s['finite']} ran, "
+                f"{s['holding']} meet every requirement at every training draw; {best}; "
                 f"{len(state.theta)} local solves from the best distinct ones"
             )
         if query.derivative != "jacobian":
