@@ -226,3 +226,46 @@ def test_the_jacobians_are_the_central_differences_of_the_hard_model():
         fd = np.moveaxis((v[0] - v[1]) / (2 * h), 0, -1)  # (K, M, n)
         scale = np.abs(fd).max() + 1e-12
         np.testing.assert_allclose(ev.jacobian[name], fd, rtol=1e-4, atol=1e-5 * scale, err_msg=name)
+
+
+def test_the_linear_program_is_the_model_of_any_problem_at_its_minimum():
+    """The trust-region program of a problem with a cvar term, a mean term and a bound on a metric
+    (no grip requirement): its step minimises the linearised merit over the box, and its predicted
+    fall is the merit's fall in that model."""
+    from tuning.problem import Objective, Requirement
+    from tuning.tuners.screen_slp import merit, program, segments
+
+    problem = Problem(
+        names=("K_GP", "K_GI", "tau"),
+        minimise=(Objective("peak_grip", "cvar:0.5", 1.0), Objective("rms_lag", "mean", 1000.0)),
+        require=(Requirement("peak_grip", "at_most", 30.0),),
+    )
+    M, n = 4, 3
+    rng = np.random.default_rng(0)
+    out = {
+        "parts": rng.normal(30.0, 3.0, 2 * M),
+        "J_parts": rng.normal(0.0, 5.0, (2 * M, n)),
+        "c": rng.normal(0.0, 2.0, M),
+        "J_c": rng.normal(0.0, 5.0, (M, n)),
+        "swi": np.zeros(0),
+        "J_swi": np.zeros((0, n)),
+    }
+    settings = dict(penalty=100.0, swi_penalty=20.0, swi_margin=0.1)
+    model = lambda d: merit(
+        {
+            "parts": (out["parts"] + out["J_parts"] @ d)[None],
+            "c": (out["c"] + out["J_c"] @ d)[None],
+            "swi": np.zeros((1, 0)),
+        },
+        problem,
+        M,
+        **settings,
+    )[0]
+    out["phi"] = model(np.zeros(n))
+    assert [over for _, over in segments(problem, M)] == ["cvar:0.5", "mean"]
+    theta, lo, hi, radius = np.zeros(n), np.full(n, -1.0), np.full(n, 1.0), 0.3
+    d, fall = program(theta, out, radius, lo, hi, problem, M, **settings)
+    assert np.abs(d).max() <= radius + 1e-9
+    assert fall == pytest.approx(out["phi"] - model(d), rel=1e-7, abs=1e-7)
+    others = rng.uniform(-radius, radius, (4000, n))
+    assert min(model(x) for x in others) >= model(d) - 1e-7
