@@ -771,8 +771,10 @@ def _plots(plan: Plan, tuned, start_trace, result, files, out: Outputs):
 
 
 def _tuners(plan: Plan) -> dict:
-    """Every registered tuner, the plan's own with its flags, the others with their defaults."""
-    return {name: (plan.tuner if name == plan.tuner.name else cls()) for name, cls in TUNERS.items()}
+    """Every registered tuner: the plan's own first, with its flags (it sets the others' budget),
+    then the others with their defaults."""
+    others = {name: cls() for name, cls in TUNERS.items() if name != plan.tuner.name}
+    return {plan.tuner.name: plan.tuner} | others
 
 
 def _compare(plan: Plan, files, quiet: bool) -> int:
@@ -840,7 +842,8 @@ def _pareto(plan: Plan, files) -> int:
         }
         for (kind, t, w, p), v in zip(flat, verdicts)
     ]
-    axis = lambda o: f"{o.over} {o.metric} over the held-out draws [{_shown(1.0, METRICS[o.metric].unit)[1]}]"
+    unit = lambda o: _shown(1.0, METRICS[o.metric].unit)[1]
+    axis = lambda o: f"{o.over} {o.metric} over the held-out draws [{unit(o)}]"
     with Outputs() as out:
         write_json(
             out.path(files["out"]),
@@ -856,7 +859,8 @@ def _pareto(plan: Plan, files) -> int:
         if r["kind"] == "front":
             print(
                 f"  {r['tuner']:<14} weight {r['weight']:>8g}: meets every requirement "
-                f"{'yes' if r['holds'] else 'NO ':>3}, {first.metric} {r['y']:.4g}, {last.metric} {r['x']:.4g}"
+                f"{'yes' if r['holds'] else 'NO ':>3}, {first.over} {first.metric} {r['y']:.4g} {unit(first)}, "
+                f"{last.over} {last.metric} {r['x']:.4g} {unit(last)}"
             )
     print(f"wrote {files['out']} and {files['pareto']}")
     return 0
