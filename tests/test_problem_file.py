@@ -145,3 +145,5 @@ def test_problem_errors_without_a_file_name_the_field():
         Problem(names=("K_GP",), uncertain=(("K_GP", "loguniform", 0.1, 1.0),)).validate()
     with pytest.raises(InputError, match="at least one objective term"):
         Problem(minimise=()).validate()
+    with pytest.raises(InputError, match="its bound K_GP is tuned"):
+        Problem(names=("K_GP",), require=(Requirement("peak_grip", "at_most", "K_GP"),)).validate()

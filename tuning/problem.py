@@ -383,7 +383,12 @@ class Problem:
             if r.kind not in KINDS:
                 raise InputError(f"require {r.metric}: give at_least or at_most", "require")
             if isinstance(r.bound, str):
-                split_name(r.bound)
+                if split_name(r.bound)[0] in tuned:
+                    raise InputError(
+                        f"require {r.metric}: its bound {r.bound} is tuned; a bound names a fixed or uncertain "
+                        "parameter",
+                        "require",
+                    )
             elif not math.isfinite(r.bound):
                 raise InputError(f"require {r.metric}: the bound {r.bound!r} must be finite", "require")
         if self.switch not in SWITCHES:
