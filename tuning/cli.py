@@ -57,9 +57,7 @@ FIELD_FLAGS = {
     "names": "--params",
     "n_draws": "--train-masses",
     "cvar_alpha": "--cvar-alpha",
-    "w_lag": "--w-lag",
     "spread": "--spread",
-    "masses": "--masses",
 }
 # The flags that state the default problem, in short; a --problem file states it instead.
 PROBLEM_FLAGS = (

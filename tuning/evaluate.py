@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax.config import Config
-from coopjax.params import Params, split_name
+from coopjax.params import ROBOTS, Params, split_name
 from tuning.problem import Problem, bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
 
@@ -42,7 +42,7 @@ def _direction(params: Params, name: str) -> Params:
         tangent[base] = leaf
     else:
         rows = jnp.arange(leaf.shape[0]).reshape((-1,) + (1,) * (leaf.ndim - 1))
-        tangent[base] = jnp.where(rows == ("L", "R").index(robot), leaf, 0.0)
+        tangent[base] = jnp.where(rows == ROBOTS.index(robot), leaf, 0.0)
     return params.with_leaves(**tangent)
 
 
@@ -76,7 +76,7 @@ def _pick(grad: Params, params: Params, name: str):
     base, robot = split_name(name)
     g, value = grad.leaves()[base], params.leaves()[base]
     if robot is not None:
-        return (g * value)[("L", "R").index(robot)]
+        return (g * value)[ROBOTS.index(robot)]
     return g * value if g.ndim == 1 else (g * value).sum(0)
 
 

@@ -111,7 +111,6 @@ def expand_params(text: str) -> tuple[str, ...]:
 
 TRAINING_METRICS = ("min_grip", "peak_grip", "peak_hold", "slip", "rms_lag", "min_swi")
 SCALE = {"m": 1e-3}  # a requirement's constraint is in its metric's unit, except lengths: in mm
-OVERS = ("max", "mean", "cvar")
 KINDS = ("at_least", "at_most")
 
 
@@ -122,11 +121,6 @@ def surrogate_config(switch: str, dt: float | None, scenario: str = "carry") -> 
         converged = INTEGRATORS["filippov"].converged_dt.get((scenario, "hard")) or 1e-3
         dt = converged if switch == "hard" else SURROGATE_DT
     return Config(scenario, switch=switch, dt=dt, dtype="float64")
-
-
-def training_config(switch: str = "hard", dt: float | None = None) -> Config:
-    """The carry scenario's training runs (every metric)."""
-    return surrogate_config(switch, dt)
 
 
 class Objective(NamedTuple):
@@ -455,22 +449,12 @@ def _requirement(r) -> Requirement:
     return r._replace(bound=bound, scenarios=scen)
 
 
-def held_out_masses(masses, count: int = 12) -> np.ndarray:
-    """The judging grid of a body-mass range (kind, low, high): ends included."""
-    return design.held_out((Uncertain("M_b", *masses),), count)[:, 0]
-
-
 def to_log(values: dict[str, float], names) -> np.ndarray:
     return np.log(np.array([values[n] for n in names], np.float64))
 
 
 def from_log(theta, names) -> dict[str, float]:
     return {n: float(np.exp(v)) for n, v in zip(names, np.asarray(theta))}
-
-
-def log_bounds(names) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = zip(*(bounds(n) for n in names))
-    return np.log(lo), np.log(hi)
 
 
 class Surrogate(NamedTuple):
