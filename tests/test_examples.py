@@ -54,7 +54,8 @@ def check(fresh_dir, capsys, name: str) -> dict:
     assert result["judge"]["dt"] == 2e-3 and result["judge"]["integrator"] == "filippov"
     problem = Problem.from_toml(path)
     draws = np.column_stack([result["held_out_draws"][u.name] for u in problem.uncertain])
-    fresh = judgement.judge(result["params"], draws, problem, dt=2e-3)
+    # Without the two-step check: the requirements' values and verdicts do not depend on it.
+    fresh = judgement.judge(result["params"], draws, problem, dt=2e-3, check_step=False)
     assert len(result["requirements"]) == len(problem.require) == len(fresh.requirements)
     nan = lambda x: np.nan if x is None else x  # tuned.json writes a NaN (not measured) as null
     for written, again in zip(result["requirements"], fresh.requirements):
