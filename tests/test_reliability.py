@@ -358,3 +358,93 @@ def test_grad_through_the_hard_switch_under_plain_rk4_warns():
     f = lambda k: cj.simulate(cj.make_params(K_GP=k), "paper", integrator="rk4", T=0.05).metrics.peak_grip
     with pytest.warns(RuntimeWarning, match="integrator='filippov'"):
         jax.eval_shape(jax.grad(f), 0.5)  # the warning is given while tracing: nothing to compile
+
+
+def _screen(raw: str) -> list[str]:
+    """The lines a terminal shows for `raw` (carriage returns overwrite, ESC[K erases the rest)."""
+    shown = []
+    for line in raw.replace("\r\n", "\n").split("\n"):
+        visible = ""
+        for piece in line.split("\r"):
+            if piece.startswith("\x1b[K"):
+                visible = piece[3:]
+            else:
+                visible = piece + visible[len(piece) :]
+        if visible.strip():
+            shown.append(visible)
+    return shown
+
+
+def test_ctrl_c_during_a_sweep_with_its_progress_bar_on_a_terminal_is_one_line(tmp_path):
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    command = [arg for arg in COMMANDS["sweep"] if arg != "--quiet"]
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # 100 columns, as a terminal has
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "coopjax.cli", *command],
+        cwd=tmp_path,
+        stdin=follower,
+        stdout=subprocess.DEVNULL,
+        stderr=follower,
+        preexec_fn=_restore_sigint,
+    )
+    os.close(follower)
+    raw, deadline = b"", time.time() + 120
+    while b"sample" not in raw and time.time() < deadline and proc.poll() is None:  # the bar is drawn
+        raw += os.read(leader, 4096)
+    assert b"sample" in raw, raw[-500:]
+    proc.send_signal(signal.SIGINT)
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        raw += chunk
+    assert proc.wait(timeout=60) == 130
+    shown = _screen(raw.decode(errors="replace"))
+    assert len(shown) == 1 and shown[0].startswith("coopjax: interrupted; "), shown
+
+
+def test_a_reader_that_leaves_early_is_not_an_error(tmp_path):
+    done = subprocess.run(
+        f"{sys.executable} -m coopjax.cli params | head -n 1; exit ${{PIPESTATUS[0]}}",
+        shell=True,
+        executable="/bin/bash",
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert done.returncode == 0 and done.stderr == "" and done.stdout.startswith("name"), done
+
+
+def test_an_interrupt_names_only_files_that_are_still_there(fresh_dir, monkeypatch):
+    from coopjax.cli import interrupts
+
+    open("kept.csv", "w").close()
+    monkeypatch.setattr(io, "WRITTEN", ["gone.ckpt", "kept.csv"])  # the run wrote, then removed, gone.ckpt
+    assert interrupts.account() == "kept.csv was written before it"
+    monkeypatch.setattr(io, "WRITTEN", ["gone.ckpt"])
+    assert interrupts.account() is None  # "nothing was written"
+
+
+def test_resume_into_a_parts_folder_it_cannot_write_is_one_line(fresh_dir, capsys, monkeypatch):
+    os.mkdir("s.csv.parts")  # empty, and (as another user's, or read-only) not writable
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if str(p).endswith("s.csv.parts") else real(p, mode))
+    argv = COMMANDS["sweep"][:]
+    argv[argv.index("48")] = "4"
+    assert cli.main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "s.csv.parts" in err and "Traceback" not in err, err
+
+
+def test_a_run_stopped_by_the_users_force_bound_says_so(fresh_dir, capsys):
+    assert cli.main(["simulate", "--T", "0.2", "--force-bound", "5", "--out", "r.csv"]) == 1
+    err = capsys.readouterr().err
+    assert "passed --force-bound 5 N" in err and "smaller --dt" not in err, err

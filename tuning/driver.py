@@ -12,15 +12,14 @@ from __future__ import annotations
 import math
 import os
 import pickle
-import sys
 import time
 from typing import Any, NamedTuple
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from coopjax.errors import InputError
 from coopjax.io import atomic_path
+from coopjax.progress import bar as progress_bar
 from tuning.evaluate import Evaluator
 from tuning.tuners import Evaluation, Query, Tuner
 
@@ -128,16 +127,7 @@ def run(
             clock.append((wall, used))
             record.add(query, evaluation, wall, used)
             elapsed, trajectories = wall, used
-    bar = tqdm(
-        total=total,
-        initial=len(log),
-        desc=f"tune ({tuner.name})",
-        unit="step",
-        disable=not progress,
-        dynamic_ncols=True,
-        mininterval=0.5,
-        file=sys.stderr,
-    )
+    bar = progress_bar(total=total, initial=len(log), desc=f"tune ({tuner.name})", unit="step", enabled=progress)
     while True:
         if budget.seconds is not None and elapsed >= budget.seconds:
             break

@@ -69,6 +69,9 @@ def main(argv=None) -> int:
 
         print(f"coopjax: error: {message(error, parser)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except BrokenPipeError:  # `coopjax params | head`: the reader left, nothing is wrong
+        _quiet_stdout()
+        return 0
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
@@ -81,11 +84,19 @@ def main(argv=None) -> int:
         return EXIT_FAILED
     except KeyboardInterrupt:  # only in-process (tests); the console script's interrupts never raise
         kept = interrupts.account()
-        print(f"\ncoopjax: interrupted; {kept or 'nothing was written'}", file=sys.stderr)
+        print(f"{interrupts.line_start()}coopjax: interrupted; {kept or 'nothing was written'}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except BrokenPipeError:  # `coopjax params | head`: the reader left, nothing is wrong
-        sys.stderr.close()
-        return 0
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: the interpreter's final flush would otherwise hit the closed pipe
+    again and print "Exception ignored"."""
+    import os
+
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 def entry() -> None:

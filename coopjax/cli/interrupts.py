@@ -33,9 +33,20 @@ def account() -> str | None:
     text = _report[0]()
     io = sys.modules.get("coopjax.io")
     if text is None and getattr(io, "WRITTEN", None):
-        written = list(dict.fromkeys(io.WRITTEN))
-        text = f"{', '.join(written)} {'was' if len(written) == 1 else 'were'} written before it"
+        # Only what is still there: a run removes some of its own files (a checkpoint, merged parts).
+        written = [path for path in dict.fromkeys(io.WRITTEN) if os.path.exists(path)]
+        if written:
+            text = f"{', '.join(written)} {'was' if len(written) == 1 else 'were'} written before it"
     return text
+
+
+def line_start() -> str:
+    """What starts the one line of an interrupt: on a terminal, a return that erases what the line
+    held (a progress bar, or the ^C the terminal echoed)."""
+    try:
+        return "\r\x1b[K" if os.isatty(2) else ""
+    except (OSError, ValueError):
+        return ""
 
 
 def _stop(signum: int) -> None:
@@ -59,7 +70,7 @@ def _stop(signum: int) -> None:
         # Straight to the file descriptor: the main thread may be inside sys.stderr (a progress bar),
         # and a second writer there raises instead of writing.
         try:
-            os.write(2, f"\ncoopjax: {name}; {text or 'nothing was written'}\n".encode())
+            os.write(2, f"{line_start()}coopjax: {name}; {text or 'nothing was written'}\n".encode())
         finally:
             os._exit(EXIT.get(signum, 128 + signum))
 

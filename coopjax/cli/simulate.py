@@ -121,11 +121,12 @@ def run(args) -> int:
         print(note)
     print(f"wrote {args.out}" + (f" and {args.plot}" if args.plot is not None else ""))
     if not bool(m.finite):
-        print(
-            f"coopjax: warning: the run diverged at t = {float(m.t_diverged):.4g} s (values after that are NaN); "
-            "try a smaller --dt",
-            file=sys.stderr,
-        )
+        at = f"t = {float(m.t_diverged):.4g} s"
+        if config.force_bound != type(config)().force_bound:  # the user's own bound: a result, not a numerical failure
+            why = f"a grip force passed --force-bound {config.force_bound:g} N at {at} (values after that are NaN)"
+        else:
+            why = f"the run diverged at {at} (values after that are NaN); try a smaller --dt"
+        print(f"coopjax: warning: {why}", file=sys.stderr)
         return EXIT_FAILED
     return 0
 

@@ -3,6 +3,7 @@ finished chunk, each written atomically."""
 
 from __future__ import annotations
 
+import errno
 import io as io_module
 import json
 import os
@@ -22,10 +23,10 @@ def load_part(parts: str, k: int, rows: int, width: int):
     """A saved chunk, or None (with a note) if it is unreadable or the wrong shape: it is recomputed."""
     path = part_path(parts, k)
     try:
-        data = np.load(path)
+        data = np.load(path, allow_pickle=False)  # data only: a planted file runs no code
         if data.shape == (rows, width):
             return data
-    except (OSError, ValueError, EOFError):
+    except (OSError, ValueError, EOFError):  # ValueError: also an object array, refused
         pass
     print(f"coopjax: note: {path} is unreadable or incomplete; it is computed again", file=sys.stderr)
     return None
@@ -84,8 +85,19 @@ def prepare_parts(parts: str, spec: SweepSpec, chunk: int, resume: bool, n_chunk
         return np.array([os.path.exists(part_path(parts, k)) for k in range(n_chunks)])
     if os.path.exists(parts) and not os.path.isdir(parts):
         raise InputError(f"{parts} exists and is not a folder: remove it", "out")
-    os.makedirs(parts, exist_ok=True)
-    with atomic_path(manifest) as tmp:
-        with open(tmp, "w") as f:
-            f.write(identity)
+    try:
+        os.makedirs(parts, exist_ok=True)
+        if not os.access(parts, os.W_OK | os.X_OK):
+            raise PermissionError(13, "Permission denied")
+        with atomic_path(manifest) as tmp:
+            with open(tmp, "w") as f:
+                f.write(identity)
+    except OSError as error:
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise  # the command's full-disk line
+        raise InputError(
+            f"cannot keep the sweep's chunks in {parts} ({error.strerror}): fix its permissions, or choose "
+            "another --out",
+            "out",
+        ) from None
     return np.zeros(n_chunks, bool)

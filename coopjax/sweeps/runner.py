@@ -12,16 +12,15 @@ writes them.
 from __future__ import annotations
 
 import math
-import sys
 
 import jax
 import numpy as np
 from jax.experimental import multihost_utils
-from tqdm.auto import tqdm
 
 from coopjax import evaluation
 from coopjax.errors import InputError
 from coopjax.params import make_params
+from coopjax.progress import bar as progress_bar
 from coopjax.status import labels
 from coopjax.sweeps.parts import load_part, part_path, prepare_parts, save_array
 from coopjax.sweeps.spec import SweepSpec, sample_values
@@ -66,15 +65,7 @@ def run(
         if n_proc > 1:
             done = np.asarray(multihost_utils.broadcast_one_to_all(done))
     results: dict[int, np.ndarray] = {}
-    bar = tqdm(
-        total=spec.n,
-        unit="sample",
-        desc="sweep",
-        disable=not (progress and pid == 0),
-        dynamic_ncols=True,
-        mininterval=0.5,
-        file=sys.stderr,
-    )
+    bar = progress_bar(total=spec.n, desc="sweep", unit="sample", enabled=progress and pid == 0)
     for k in np.flatnonzero(done) if pid == 0 else ():
         saved = load_part(parts, int(k), min((k + 1) * chunk, spec.n) - k * chunk, width)
         if saved is None:
