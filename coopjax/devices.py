@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 import warnings
 
 import jax
@@ -149,12 +150,40 @@ def run(
     host = _pad([np.asarray(x) for x in leaves], pad, np)
     program = _compiled(fn, n, batched, n > 1)
     place = (lambda t: _place(t, n)) if n > 1 else (lambda t: t)
-    parts = [
-        program(place(jax.tree_util.tree_unflatten(tree, [x[..., s : s + slab] for x in host])))
+    slabs = [
+        place(jax.tree_util.tree_unflatten(tree, [x[..., s : s + slab] for x in host]))
         for s in range(0, size + pad, slab)
     ]
+    if n == 1:
+        return _joined([program(x) for x in slabs], size, batched)
+    executable = compiled(program, slabs[0])  # outside the lock: another thread's programs may run meanwhile
+    with EXCLUSIVE:
+        return jax.block_until_ready(_joined([executable(x) for x in slabs], size, batched))
+
+
+def _joined(parts, size, batched):
     if len(parts) == 1:
         return _unpad(parts[0], size, batched)
     flags = batched(parts[0])
     out = jax.tree_util.tree_map(lambda b, *xs: jnp.concatenate(xs, axis=-1) if b else xs[0], flags, *parts)
     return _unpad(out, size, batched)
+
+
+# One multi-device program at a time in this process. Programs from two threads (the tuner's
+# background judging and its selection) could otherwise be queued in opposite orders on two devices
+# and wait for each other forever at a collective. Compiling needs no lock; running holds it until
+# the outputs are ready.
+EXCLUSIVE = threading.RLock()
+_EXECUTABLES: dict = {}
+
+
+def compiled(program, *args):
+    """`program` (a jitted function) compiled ahead of time for these arguments' shapes, dtypes and
+    shardings, once per process."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    key = (program, str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
+    if key not in _EXECUTABLES:
+        if len(_EXECUTABLES) >= 64:  # as `_compiled`'s cache: the oldest goes
+            del _EXECUTABLES[next(iter(_EXECUTABLES))]
+        _EXECUTABLES[key] = program.lower(*args).compile()
+    return _EXECUTABLES[key]

@@ -53,3 +53,20 @@ def test_resume_replays_to_the_same_state(tmp_path):
     assert resumed.state.history == whole.state.history
     for a, b in zip(resumed.tuner.candidates(resumed.state), whole.tuner.candidates(whole.state)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_tuner_that_does_not_end_on_its_own_is_refused_without_a_budget():
+    """--pareto and --compare never hang: every tuner either ends on its own or runs on a budget,
+    and the driver refuses the third case before the first evaluation."""
+    from coopjax.errors import InputError
+    from tuning.tuners import TUNERS
+
+    for name, cls in TUNERS.items():
+        tuner = cls()
+        if tuner.ends():
+            continue
+        evaluator = Recording()
+        with pytest.raises(InputError, match="does not end on its own"):
+            solve(tuner, STARTS, evaluator)
+        assert evaluator.queries == []
+        assert solve(tuner, STARTS, Analytic(), budget=driver.Budget(trajectories=100)).evaluations > 0

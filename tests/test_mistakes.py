@@ -233,6 +233,11 @@ CASES = [
     ("tune-compare-pareto", {}, ["tune", "--compare", "--pareto"], {}, "choose one"),
     ("tune-race-budget", {}, ["tune", "--compare", "--race-budget", "money"], {}, "--race-budget must be one of"),
     ("tune-resume-nothing", {}, ["tune", "--resume"], {}, "no tuned.json.ckpt to continue"),
+    # Sizes beyond this machine's memory, refused before any work, naming tune's own flags.
+    ("tune-train-masses-huge", {}, ["tune", "--train-masses", "100000000"], {}, "--train-masses 100000000"),
+    ("tune-screen-huge", {}, ["tune", "--screen", "1000000000"], {}, "--screen 1000000000"),
+    ("tune-local-huge", {}, ["tune", "--local", "100000000"], {}, "--local 100000000"),
+    ("tune-held-out-huge", {}, ["tune", "--held-out", "100000000"], {}, "--held-out 100,000,000"),
     ("tune-judge-dt-zero", {}, ["tune", "--judge-dt", "0"], {}, "--judge-dt is 0"),
     ("tune-judge-dt-unstable", {}, ["tune", "--judge-dt", "0.05"], {}, "too large for filippov"),
     ("tune-judge-dt-horizon", {}, ["tune", "--judge-dt", "10"], {}, "longer than the horizon"),

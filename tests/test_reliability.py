@@ -448,3 +448,32 @@ def test_a_run_stopped_by_the_users_force_bound_says_so(fresh_dir, capsys):
     assert cli.main(["simulate", "--T", "0.2", "--force-bound", "5", "--out", "r.csv"]) == 1
     err = capsys.readouterr().err
     assert "passed --force-bound 5 N" in err and "smaller --dt" not in err, err
+
+
+class _Planted:
+    """A pickle whose loading runs code: it creates a file."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.mark.parametrize("content", ["pickle", "npy", "text"])
+def test_a_planted_checkpoint_is_refused_in_one_line_and_nothing_in_it_runs(fresh_dir, capsys, content):
+    import pickle
+
+    marker = str(fresh_dir / "ran")
+    with open("tuned.json.ckpt", "wb") as f:
+        if content == "pickle":
+            pickle.dump({"identity": {}, "log": _Planted(marker), "clock": []}, f)
+        elif content == "npy":
+            np.save(f, np.array([_Planted(marker)], dtype=object), allow_pickle=True)
+        else:
+            f.write(b"not a checkpoint\n")
+    assert cli.main([*COMMANDS["tune"], "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is not a coopjax tuning checkpoint" in err, err
+    assert not os.path.exists(marker)  # nothing in the file was executed
+    assert sorted(os.listdir(fresh_dir)) == ["tuned.json.ckpt"]  # and nothing was written

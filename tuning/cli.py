@@ -25,7 +25,7 @@ from coopjax.io import Outputs, write_json
 from coopjax import scenarios
 from coopjax.objectives import METRICS
 from coopjax.params import PARAMETERS, split_name
-from coopjax.simulation import simulate
+from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver, race
 from tuning.plots import plot_history, plot_pareto, plot_race, plot_traces
@@ -377,6 +377,7 @@ class Plan:
             raise BadInput(f"--spread is {args.spread:g}: it must be 0 or more")
         if not (math.isfinite(args.judge_dt) and args.judge_dt > 0):
             raise BadInput(f"--judge-dt is {args.judge_dt:g}: it must be positive")
+        _check_sizes(args, problem, self.tuner)
         self.base = problem.base()
         self.first = {n: float(np.asarray(self.base.get(n)).ravel()[0]) for n in names}
         self.starts, self.spread, self.seed = args.starts, args.spread, args.seed
@@ -421,6 +422,48 @@ class Plan:
             "seed": self.seed,
             "judge_dt": self.judge_dt,
         }
+
+
+# Bytes one training run holds while a batch runs, per value it carries (its state and metric
+# accumulators, each with its tangents): a generous round figure, for refusing absurd sizes up front.
+RUN_BYTES = 8 * 4 * (20 + 40)
+JUDGED_BYTES = 8 * 2 * 24  # one held-out (draw, scenario) row of the judge's tables, at dt and dt/2
+
+
+def _check_sizes(args, problem: Problem, tuner) -> None:
+    """Every size the run holds at once, against half of this machine's memory, before any work:
+    one query's batch of runs (candidates x training draws x scenarios), and the judge's tables."""
+    limit, scenarios = memory_limit(), len(problem.scenarios)
+    gib = lambda b: f"{b / 2**30:.3g} GiB"
+    p, n = len(problem.uncertain), len(problem.names)
+    draws = problem.n_draws + (2**p if p > 1 else 0)
+    draws_flag = "--train-masses" if args.problem is None else "n_draws"
+    if problem.n_draws * p * 8 * 4 > limit:
+        raise BadInput(
+            f"{draws_flag} {problem.n_draws:,}: the training draws alone need {gib(problem.n_draws * p * 32)}, "
+            f"more than half of this machine's memory ({gib(limit)})"
+        )
+    count, setting = tuner.largest_batch(n, args.starts)
+    runs = count * draws * scenarios
+    if runs * RUN_BYTES * (1 + n) > limit:
+        raise BadInput(
+            f"{setting} with {draws_flag} {problem.n_draws}: one step would run {runs:,} trajectories at once "
+            f"({count:,} candidates x {draws:,} draws x {scenarios} scenario(s)), about "
+            f"{gib(runs * RUN_BYTES * (1 + n))}, more than half of this machine's memory ({gib(limit)}): "
+            "lower one of them"
+        )
+    kept, setting = tuner.kept_bytes(n, args.starts, draws * scenarios)
+    if kept > limit:
+        raise BadInput(
+            f"{setting}: the tuner would keep {gib(kept)} of results, more than half of this machine's memory "
+            f"({gib(limit)})"
+        )
+    if args.held_out * scenarios * JUDGED_BYTES > limit:
+        raise BadInput(
+            f"--held-out {args.held_out:,}: the judge's tables would need "
+            f"{gib(args.held_out * scenarios * JUDGED_BYTES)}, more than half of this machine's memory ({gib(limit)}); at most "
+            f"{limit // (scenarios * JUDGED_BYTES):,} draws"
+        )
 
 
 def _pareto_weights(args, problem: Problem) -> list[float]:
@@ -546,12 +589,15 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
         if text:
             print(text)
 
+    starts = plan.starts_for(plan.seed)
+    if resume:  # a checkpoint that is not this run's is refused before anything starts
+        driver.load_checkpoint(files["checkpoint"], driver.identity(tuner, problem, starts, plan.seed))
     start_side = _StartSide(plan)
     result = driver.run(
         tuner,
         problem,
         plan.base,
-        plan.starts_for(plan.seed),
+        starts,
         plan.seed,
         checkpoint=files["checkpoint"],
         resume=resume,

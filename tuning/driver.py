@@ -9,9 +9,11 @@ told, so a resumed run ends bit-identical to an uninterrupted one, whatever stat
 
 from __future__ import annotations
 
+import hashlib
+import io as io_module
+import json
 import math
 import os
-import pickle
 import time
 from typing import Any, NamedTuple
 
@@ -23,7 +25,8 @@ from coopjax.progress import bar as progress_bar
 from tuning.evaluate import Evaluator
 from tuning.tuners import Evaluation, Query, Tuner
 
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3  # 3: arrays and JSON in an .npz (2 was a pickle)
+CHECKPOINT_KIND = "coopjax tuning checkpoint"
 
 
 class Budget(NamedTuple):
@@ -107,6 +110,9 @@ def run(
     from it. `total` sizes the progress bar (a tuner's step count); `on_step(state, query, evaluation)`
     is called after each live evaluation.
     """
+    if budget.seconds is None and budget.trajectories is None and not tuner.ends():
+        # A run that cannot end would hang its caller (a study, a script): a budget comes first.
+        raise InputError(f"{tuner.name} with these settings does not end on its own: give it a budget", "budget")
     evaluator = evaluator or Evaluator(problem, base, type(tuner).scalar)
     ident = identity(tuner, problem, starts, seed)
     log: list[tuple[Query, Evaluation]] = []
@@ -122,8 +128,9 @@ def run(
             asked = tuner.ask(state)
             if asked is None or not _same(asked, query):
                 raise InputError(f"{checkpoint} does not replay with this code and these options: delete it", "resume")
-            state = tuner.tell(state, query, evaluation)
-            log.append((query, evaluation))
+            # The tuner's own query goes on (the file keeps what identifies it, not its `weights`).
+            state = tuner.tell(state, asked, evaluation)
+            log.append((asked, evaluation))
             clock.append((wall, used))
             record.add(query, evaluation, wall, used)
             elapsed, trajectories = wall, used
@@ -163,23 +170,73 @@ def _same(a: Query, b: Query) -> bool:
     )
 
 
+def _fingerprint(ident: dict) -> str:
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+
 def save_checkpoint(path: str, ident: dict, log, clock) -> None:
+    """The log as data: one `.npz` of plain arrays, read back with `allow_pickle=False`, so that
+    loading a checkpoint (a planted one included) can never run code. The index (what each entry
+    holds, the clock, the run's identity and its fingerprint) is JSON inside it."""
+    arrays, entries = {}, []
+    for i, (query, evaluation) in enumerate(log):
+        arrays[f"q{i}.thetas"], arrays[f"q{i}.draws"] = np.asarray(query.thetas), np.asarray(query.draws)
+        fields = [name for name in Evaluation._fields if name != "jacobian" and getattr(evaluation, name) is not None]
+        for name in fields:
+            arrays[f"e{i}.{name}"] = np.asarray(getattr(evaluation, name))
+        jacobian = sorted(evaluation.jacobian) if evaluation.jacobian is not None else None
+        for key in jacobian or ():
+            arrays[f"e{i}.jacobian.{key}"] = np.asarray(evaluation.jacobian[key])
+        entries.append({"derivative": query.derivative, "mode": query.mode, "fields": fields, "jacobian": jacobian})
+    index = {
+        "kind": CHECKPOINT_KIND,
+        "format": CHECKPOINT_FORMAT,
+        "identity": ident,
+        "fingerprint": _fingerprint(ident),
+        "entries": entries,
+        "clock": [[float(wall), int(used)] for wall, used in clock],
+    }
+    arrays["index"] = np.array(json.dumps(index))
+    buffer = io_module.BytesIO()  # whole, then one write: numpy's writer hides a full disk's errno
+    np.savez(buffer, **arrays)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            pickle.dump({"identity": ident, "log": log, "clock": clock}, f, protocol=pickle.HIGHEST_PROTOCOL)
+            f.write(buffer.getbuffer())
 
 
 def load_checkpoint(path: str, ident: dict) -> dict:
-    """A checkpoint's log, after checking it belongs to this run. (A checkpoint is a pickle: load only
-    your own.)"""
+    """A checkpoint's log, after checking that it is one, of this format, and of this run. Nothing in
+    the file is executed: it is read as arrays and JSON only."""
+
+    def refuse(why: str):
+        return InputError(f"{path} is not a coopjax tuning checkpoint ({why}): delete it", "resume")
+
     try:
-        with open(path, "rb") as f:
-            saved = pickle.load(f)
-        saved["identity"], saved["log"], saved["clock"]
-    except Exception as error:  # a foreign or damaged file: say so rather than crash
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("a single array, not an archive")
+        with data:
+            stored = {name: data[name] for name in data.files}
+        index = json.loads(str(stored.pop("index")))
+        if index.get("kind") != CHECKPOINT_KIND:
+            raise ValueError("no checkpoint index")
+    except Exception as error:  # a foreign, damaged or pickled file: said, never run
+        raise refuse(type(error).__name__ if not isinstance(error, ValueError) else str(error)[:60]) from None
+    if index["format"] != CHECKPOINT_FORMAT:
         raise InputError(
-            f"{path} is not a coopjax tuning checkpoint ({type(error).__name__}): delete it", "resume"
-        ) from None
-    if saved["identity"] != ident:
+            f"{path} was written by another version of coopjax (format {index['format']}): delete it", "resume"
+        )
+    if index["identity"] != ident or index["fingerprint"] != _fingerprint(ident):
         raise InputError(f"{path} belongs to a run with other options; use the same flags, or delete it", "resume")
-    return saved
+    log = []
+    try:
+        for i, entry in enumerate(index["entries"]):
+            query = Query(stored[f"q{i}.thetas"], stored[f"q{i}.draws"], entry["derivative"], entry["mode"])
+            values = {name: stored[f"e{i}.{name}"] for name in entry["fields"]}
+            if entry["jacobian"] is not None:
+                values["jacobian"] = {key: stored[f"e{i}.jacobian.{key}"] for key in entry["jacobian"]}
+            log.append((query, Evaluation(**values)))
+        clock = [(wall, used) for wall, used in index["clock"]]
+    except (KeyError, TypeError, ValueError) as error:
+        raise refuse(f"incomplete: {error}") from None
+    return {"identity": ident, "log": log, "clock": clock}

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from coopjax import devices
 from coopjax.config import Config
 from coopjax.params import ROBOTS, Params, split_name
 from tuning.problem import Problem, bound_values, combine, params_for, run_metrics
@@ -141,7 +142,8 @@ class Evaluator:
             _EXECUTABLES[key] = fn.lower(*args).compile()
             self.compile_s += time.perf_counter() - start
         if execute:
-            return _EXECUTABLES[key](*args)
+            with devices.EXCLUSIVE:  # one multi-device program at a time (see `coopjax.devices`)
+                return jax.block_until_ready(_EXECUTABLES[key](*args))
         return jax.eval_shape(fn, *args)
 
     def _kinds(self, query: Query) -> tuple[str | None, str | None]:

@@ -24,6 +24,9 @@ class ScreenSLPFiniteDifferences(ScreenSLP):
     plain_run = False  # a study's entrant, not a --method
     jacobian: str = "fd"
 
+    def ends(self) -> bool:  # as screen-SLP does
+        return True
+
 
 @register
 @dataclasses.dataclass(frozen=True)

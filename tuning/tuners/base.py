@@ -109,6 +109,16 @@ class Tuner(abc.ABC):
         """A line after an evaluation (None: nothing to say)."""
         return None
 
+    def largest_batch(self, n_params: int, starts: int) -> tuple[int, str]:
+        """The most candidates one query can hold, and the setting that sets it, as its flag and
+        value (checked against the machine's memory before any work). By default, the starts."""
+        return starts, f"--starts {starts}"
+
+    def kept_bytes(self, n_params: int, starts: int, draws: int) -> tuple[int, str]:
+        """The most bytes the tuner's own state holds (its record of evaluated points, say), and the
+        setting that sets it, as its flag and value. By default, nothing worth checking."""
+        return 0, ""
+
     def expected_evaluations(self, starts: int) -> int | None:
         """Evaluations a run takes, for the progress bar (None: not known ahead)."""
         return None

@@ -286,6 +286,16 @@ class ScreenSLP(Tuner):
     jacobian: str = "exact"
     fd_step: float = 1e-3
 
+    def largest_batch(self, n_params: int, starts: int) -> tuple[int, str]:
+        lanes = self.local * (2 * n_params + 1 if self.jacobian == "fd" else self.radii)
+        return max(
+            (lanes, f"--local {self.local}"), (starts, f"--starts {starts}")
+        )  # the screen runs in batches of the lanes' shape
+
+    def kept_bytes(self, n_params: int, starts: int, draws: int) -> tuple[int, str]:
+        # The screen's points and their evaluations (objective, constraints and margins per draw).
+        return (self.screen + starts) * (n_params + 4 + 4 * draws) * 8 * 2, f"--screen {self.screen}"
+
     def _phi(self, out, state):
         return merit(out, state.problem, len(state.draws), self.penalty, self.swi_penalty, self.swi_margin)
 
