@@ -461,7 +461,8 @@ def _check_sizes(args, problem: Problem, tuner) -> None:
     if args.held_out * scenarios * JUDGED_BYTES > limit:
         raise BadInput(
             f"--held-out {args.held_out:,}: the judge's tables would need "
-            f"{gib(args.held_out * scenarios * JUDGED_BYTES)}, more than half of this machine's memory ({gib(limit)}); at most "
+            f"{gib(args.held_out * scenarios * JUDGED_BYTES)}, more than half of this machine's memory "
+            f"({gib(limit)}); at most "
             f"{limit // (scenarios * JUDGED_BYTES):,} draws"
         )
 
