@@ -51,7 +51,7 @@ def build_parser():
     sub.required = True
     parser.field_flags = {}  # API names whose flag is not their own spelling (`names` is --params)
     for module in commands():
-        module.add_parser(sub).set_defaults(run=module.run)
+        module.add_parser(sub).set_defaults(run=module.run, compiles=getattr(module, "COMPILES", True))
         parser.field_flags.update(getattr(module, "FIELD_FLAGS", {}))
     return parser
 
@@ -62,8 +62,13 @@ def main(argv=None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
-        cache.enable()
-        return args.run(args)
+        if args.compiles:  # a command that compiles nothing neither needs the cache nor hears of it
+            cache.enable()
+        code = args.run(args)
+        said = cache.note()
+        if said:
+            print(f"coopjax: note: {said}", file=sys.stderr)
+        return code
     except InputError as error:
         from coopjax.cli.common import message
 

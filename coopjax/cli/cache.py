@@ -1,23 +1,34 @@
-"""The command line's persistent compilation cache (JAX's own, on disk).
+"""The command line's persistent compilation cache (JAX's own, on disk), which is only ever an
+accelerator.
 
 A run of `coopjax tune` spends about 20 s compiling its programs, the same ones every time for the
 same options. With JAX's persistent cache a later run loads them instead. The folder is
-`$XDG_CACHE_HOME/coopjax/xla` (`~/.cache/coopjax/xla`); `COOPJAX_CACHE=FOLDER` moves it and
-`COOPJAX_CACHE=` (empty) turns it off. A user who sets JAX's own `JAX_COMPILATION_CACHE_DIR` keeps it.
-JAX keys each entry on the program, the compile options and the jax and XLA versions, so a changed
-model or an upgraded jax compiles afresh rather than loading a stale program. The entries are
-machine code for this CPU, and a folder may be shared (a network home, a `jax.distributed` sweep
-over several machines), so each machine and jax build gets a subfolder of its own (`machine_tag`):
-no process loads a program built for another CPU's instruction set, or by another jaxlib (which
-XLA's loader rejects at best, and which can crash it).
+`$XDG_CACHE_HOME/coopjax/xla` (`~/.cache/coopjax/xla`); `COOPJAX_CACHE=FOLDER` moves it (a leading
+`~` is the home folder) and `COOPJAX_CACHE=` (empty) turns it off. A user who sets JAX's own
+`JAX_COMPILATION_CACHE_DIR` keeps it, and its behaviour. JAX keys each entry on the program, the
+compile options and the jax and XLA versions, so a changed model or an upgraded jax compiles afresh
+rather than loading a stale program. The entries are machine code for this CPU, and a folder may be
+shared (a network home, a `jax.distributed` sweep over several machines), so each machine and jax
+build gets a subfolder of its own (`machine_tag`).
+
+JAX trusts an entry's content: an entry holding another program (two entries' files swapped, a bad
+copy) reaches XLA, which can abort the process. So each subfolder keeps the SHA-256 of every entry
+this project wrote (`SUMS`), and before JAX reads anything, an entry whose content is not the one
+recorded for its name, or that no run recorded, is deleted (`verify`): it costs a compile, never a
+crash. The sums are keyed by the entry's name inside the folder, so a cache copied to another path
+(or machine of the same kind) is used there. What JAX would warn about the cache (an unreadable
+entry, a full disk while writing) becomes at most one short note for the whole run, printed at its
+end, and only by a command that compiled something.
 """
 
 from __future__ import annotations
 
+import atexit
 import hashlib
+import json
 import os
 import platform
-import sys
+import warnings
 
 from coopjax.errors import InputError
 
@@ -28,13 +39,19 @@ MAX_BYTES = 2 * 1024**3  # JAX evicts the least recently used entries beyond thi
 MIN_COMPILE_S = 0.2
 
 
+SUMS = "coopjax-sums.json"  # in each machine's subfolder: entry name -> [size, mtime_ns, inode, sha256]
+SUFFIX, ATIME = "-cache", "-atime"  # JAX's names for an entry and its access time
+_notes: list[str] = []  # what the run should hear about its cache, said once at its end
+_compiled = [False]
+
+
 def location(environ=os.environ) -> tuple[str | None, bool]:
     """(folder, whether the user chose it); folder None: no cache of ours."""
     if environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None, True
     if ENV in environ:
-        return (environ[ENV] or None), True
-    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        return (os.path.expanduser(environ[ENV]) or None), True
+    base = os.path.expanduser(environ.get("XDG_CACHE_HOME") or "") or os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "coopjax", "xla"), False
 
 
@@ -91,13 +108,133 @@ def enable(environ=os.environ) -> str | None:
                 f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
                 f"writable folder, or set {ENV}= (empty) to run without it"
             ) from None
-        print(
-            f"coopjax: note: no compile cache ({shared}: {error.strerror}); every run compiles afresh", file=sys.stderr
-        )
+        _notes.append(f"no compile cache ({shared}: {error.strerror}); every run compiles afresh")
+        _listen()
+        return None
+    try:
+        verify(folder)
+    except OSError as error:  # entries it could neither check nor remove: the run goes without
+        _notes.append(f"the compile cache in {folder} was not used ({error.strerror})")
+        _listen()
         return None
     import jax
 
+    _listen()
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    # XLA's own GPU kernel and autotuning caches would put the folder's path into every program's
+    # key (so a copied cache would never hit); they do nothing on a CPU.
+    jax.config.update("jax_persistent_cache_enable_xla_caches", "none")
+    atexit.register(_record_quietly, folder)
     return folder
+
+
+def _sha(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _read_sums(folder: str) -> dict:
+    try:
+        with open(os.path.join(folder, SUMS)) as f:
+            sums = json.load(f)
+        return sums if isinstance(sums, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_sums(folder: str, sums: dict) -> None:
+    tmp = os.path.join(folder, f".{SUMS}.{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(sums, f)
+    os.replace(tmp, os.path.join(folder, SUMS))
+
+
+def _stat(path: str) -> list:
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ino]
+
+
+def verify(folder: str) -> list[str]:
+    """Delete every entry whose content is not the one recorded for its name (or that nothing
+    recorded); returns their names. An entry whose size, time and inode are as recorded is not read
+    again. Raises OSError if a bad entry cannot be removed."""
+    sums, removed = _read_sums(folder), []
+    for name in sorted(os.listdir(folder)):
+        if not name.endswith(SUFFIX):
+            continue
+        path, known = os.path.join(folder, name), sums.get(name)
+        try:
+            if isinstance(known, list) and len(known) == 4:
+                if _stat(path) == known[:3]:
+                    continue
+                if _sha(path) == known[3]:  # moved or copied, same content
+                    sums[name] = _stat(path) + [known[3]]
+                    continue
+        except OSError:
+            pass  # unreadable: removed below
+        for doomed in (path, path[: -len(SUFFIX)] + ATIME):
+            try:
+                os.unlink(doomed)
+            except FileNotFoundError:
+                pass
+        sums.pop(name, None)
+        removed.append(name)
+    for name in [n for n in sums if not os.path.exists(os.path.join(folder, n))]:  # evicted by JAX
+        del sums[name]
+    _write_sums(folder, sums)
+    return removed
+
+
+def record(folder: str) -> None:
+    """Add the sums of the entries this run wrote (at its end: JAX writes them as it compiles)."""
+    sums = _read_sums(folder)
+    for name in os.listdir(folder):
+        path = os.path.join(folder, name)
+        if name.endswith(SUFFIX) and not (isinstance(sums.get(name), list) and sums[name][:3] == _stat(path)):
+            sums[name] = _stat(path) + [_sha(path)]
+    _write_sums(folder, sums)
+
+
+def _record_quietly(folder: str) -> None:
+    try:
+        record(folder)
+    except OSError:  # a full disk or a vanished folder: the next run checks (and drops) what is unknown
+        pass
+
+
+def _listen() -> None:
+    """Turn JAX's cache warnings into one note, and notice whether the run compiled anything."""
+    import jax
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        if "persistent compilation cache" in text:
+            kind = "read" if "reading" in text else "written"
+            note = (
+                f"the compile cache could not be {kind} ({text.rsplit(': ', 1)[-1][:80]}); those programs were compiled"
+            )
+            if not any(n.startswith("the compile cache could not") for n in _notes):
+                _notes.append(note)
+            return
+        shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+
+    def compiled(event, *args, **kwargs):
+        if event.startswith("/jax/core/compile") or event.startswith("/jax/compilation_cache"):
+            _compiled[0] = True
+
+    jax.monitoring.register_event_duration_secs_listener(compiled)
+    jax.monitoring.register_event_listener(compiled)
+
+
+def note() -> str | None:
+    """The run's one note about its cache, if it compiled anything and there is something to say."""
+    return "; ".join(_notes) if _notes and _compiled[0] else None

@@ -5,6 +5,7 @@ from __future__ import annotations
 from coopjax.params import OWNER, PARAMETERS
 
 NAME = "params"
+COMPILES = False  # no compile cache, and no note about it
 
 
 def add_parser(sub):

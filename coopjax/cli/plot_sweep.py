@@ -7,6 +7,7 @@ from coopjax.io import Outputs, read_table
 from coopjax.plotting import plot_sweep
 
 NAME = "plot-sweep"
+COMPILES = False  # a table and a figure: no compile cache
 
 
 def add_parser(sub):
