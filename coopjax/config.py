@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -26,6 +27,24 @@ MAX_STEPS = 2**31 - 1  # a 32-bit step counter
 def setting(default, help: str, flag: str | None = None, choices=None):
     """A field of `Config` with its command-line flag and help (choices: a callable giving the names)."""
     return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices))
+
+
+def _number(name: str, value):
+    """A setting that fixes the program's shape (the step count) as a Python float: a Python or
+    NumPy number, or a concrete 0-d JAX or NumPy array; anything else is an InputError naming it."""
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, str):
+        raise InputError(f"{name} must be a number, got {value!r} (a {type(value).__name__})", name)
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, jax.core.Tracer):
+        raise InputError(
+            f"{name} is traced (under jit, grad or vmap): it sets the number of steps, so it must be a concrete "
+            "number; pass it as a static argument",
+            name,
+        )
+    if isinstance(value, (np.ndarray, jax.Array)) and np.ndim(value) == 0 and np.issubdtype(value.dtype, np.number):
+        return float(value)
+    raise InputError(f"{name} must be a number, got a {type(value).__name__}", name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +86,10 @@ class Config:
             object.__setattr__(
                 self, "metrics", tuple(self.metrics) if isinstance(self.metrics, (list, tuple)) else self.metrics
             )
+        for name in ("dt", "T", "force_bound"):  # a concrete JAX or NumPy scalar is a number
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _number(name, value))
 
     @classmethod
     def of(cls, config: "Config | str | None" = None, **overrides) -> "Config":

@@ -17,7 +17,8 @@ from coopjax import devices, objectives, scenarios, stability
 from coopjax.config import Config, check_every, record_size
 from coopjax.errors import InputError
 from coopjax.integration import Solution, Trajectory, batched_leaves, integrate
-from coopjax.params import Params, as_batched
+from coopjax.objectives import mark_unusable
+from coopjax.params import Params, as_batched, is_traced
 
 
 class Run(NamedTuple):
@@ -72,7 +73,7 @@ def simulate(
     every: int | None = None,
     checkpoint: bool | str = True,
     unroll: int = 1,
-    check_dt: bool = True,
+    check_dt: bool | str = True,
     **settings,
 ) -> Solution:
     """Simulate one parameter set or a batch of them (leaves with a trailing batch axis).
@@ -84,7 +85,10 @@ def simulate(
       checkpoint: under reverse-mode differentiation, True rematerialises each step; "nested" also
         checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n)); "segment" checkpoints the
         blocks only and stores the steps inside one; False stores everything.
-      check_dt: refuse a step beyond the stability limit of the linearised loop.
+      check_dt: True refuses (InputError) a step beyond the stability limit of the linearised loop,
+        or an unstable loop; under a trace (jit, grad, vmap), where nothing can be refused, and with
+        "mark", such a sample is marked instead: NaN metrics with NaN derivatives, `finite` False,
+        as a sweep flags it. False runs every sample as given.
       **settings: any `Config` field, e.g. `switch="smooth"`, `integrator="rk4"`, `dt=2e-3`, `T=1.0`.
 
     Returns a `Solution`. Bad static input raises InputError before anything is traced; a sample
@@ -107,7 +111,10 @@ def simulate(
             RuntimeWarning,
             stacklevel=2,
         )
-    if check_dt:
+    if check_dt not in (True, False, "mark"):
+        raise InputError(f"check_dt is {check_dt!r}: choose True, False or 'mark'", "check_dt")
+    mark = check_dt == "mark" or (check_dt and is_traced(params))
+    if check_dt and not mark:
         stability.check_step(params, config)
     batched, added = as_batched(params)
     if every is not None:
@@ -120,6 +127,11 @@ def simulate(
                 "every",
             )
     solution = devices.run(Run(config, every, checkpoint, unroll), batched, batched=batched_leaves)
+    if mark:
+        # No exception under a trace: a sample whose step is beyond its stability limit is marked as a
+        # diverged one is (NaN metrics, NaN derivatives, finite False), never a number to trust.
+        bad = stability.beyond_limit(batched, config)
+        solution = solution._replace(metrics=mark_unusable(solution.metrics, bad))
     if added:
         squeeze = lambda x: x[..., 0]
         trajectory = solution.trajectory

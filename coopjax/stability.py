@@ -74,6 +74,25 @@ def growing_mode(eigenvalues: np.ndarray) -> np.ndarray:
     return np.where(growth > 1e-9 * scale + 1e-9, growth, 0.0)
 
 
+def beyond_limit(params: Params, config) -> jax.Array:
+    """Per sample (traceable: under jit, vmap and differentiation), whether config.dt is beyond the
+    integrator's stability limit or the loop itself is unstable. The linearisation is traced (its
+    inputs without derivatives); the eigenvalues and the limit are computed on the host."""
+    batched, _ = as_batched(jax.tree_util.tree_map(jax.lax.stop_gradient, params))
+    J = _jacobians(batched, config.scenario, config.options)
+    method, dt = config.method, config.dt
+
+    def host(J):
+        J = np.asarray(J, np.float64)
+        eig = np.linalg.eigvals(J.reshape((-1,) + J.shape[-3:]))
+        bad = (growing_mode(eig) > 0) | (dt > INTEGRATORS[method].stable_dt(eig))
+        return bad.reshape(J.shape[:-3])
+
+    shape = jax.ShapeDtypeStruct(J.shape[:-3], jnp.bool_)
+    bad = jax.pure_callback(host, shape, J, vmap_method="expand_dims")
+    return bad.reshape(params.batch_shape)
+
+
 def check_step(params: Params, config) -> None:
     """Raise InputError if config.dt is beyond the integrator's stability limit for any sample."""
     if is_traced(params):

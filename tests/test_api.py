@@ -104,3 +104,34 @@ def test_a_large_batch_on_one_core_of_several_says_so(monkeypatch):
         devices.run(_body_mass, params)
         devices.run(_body_mass, params)  # once only
     assert len(caught) == 1 and "use_all_cores" in str(caught[0].message)
+
+
+@pytest.mark.parametrize(
+    "dt", [jnp.asarray(2e-3), np.float64(2e-3), np.asarray(2e-3)], ids=["jax", "numpy-scalar", "0-d"]
+)
+def test_dt_and_T_accept_concrete_jax_and_numpy_scalars(dt):
+    a = cj.simulate(cj.make_params(), "paper", dt=dt, T=np.asarray(0.2)).metrics
+    b = cj.simulate(cj.make_params(), "paper", dt=2e-3, T=0.2).metrics
+    assert float(a.peak_grip) == float(b.peak_grip)
+
+
+@pytest.mark.parametrize("dt, fragment", [("0.001", "dt must be a number"), ([1e-3], "dt must be a number")])
+def test_dt_of_another_type_is_an_input_error_naming_it(dt, fragment):
+    with pytest.raises(cj.InputError, match=fragment):
+        cj.simulate(cj.make_params(), "paper", dt=dt)
+
+
+def test_an_unstable_step_is_marked_not_raised_under_a_trace_and_its_derivative_is_nan():
+    """The README's loss at K_GP = 50 (beyond the step's stability limit at dt = 2e-3 s, paper
+    scenario): concretely an InputError; under grad a NaN value with a NaN derivative, never 0.0;
+    with check_dt="mark", a per-sample flag, the other samples exact. (The blend switch: its
+    gradient compiles in seconds; the marking is `simulate`'s, whatever the switch.)"""
+    run = lambda k, **kw: cj.simulate(cj.make_params(K_GP=k), "paper", dt=2e-3, T=0.2, switch="blend", **kw).metrics
+    with pytest.raises(cj.InputError, match="too large"):
+        run(50.0)
+    slopes = jax.jit(jax.vmap(jax.grad(lambda k: cj.loss(run(k)))))(jnp.array([0.5, 50.0]))
+    assert np.isfinite(float(slopes[0])) and np.isnan(float(slopes[1]))
+    marked = run(jnp.array([0.5, 50.0]), check_dt="mark")
+    assert marked.finite.tolist() == [True, False]
+    assert np.isnan(float(marked.peak_grip[1]))
+    assert float(marked.peak_grip[0]) == pytest.approx(float(run(0.5).peak_grip), rel=1e-12)

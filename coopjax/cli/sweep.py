@@ -72,6 +72,14 @@ def add_parser(sub):
     )
     p.add_argument("--num-processes", type=int, default=None, help="number of processes (or COOPJAX_NUM_PROCESSES)")
     p.add_argument("--process-id", type=int, default=None, help="this process, 0 to N-1 (or COOPJAX_PROCESS_ID)")
+    p.add_argument(
+        "--timeout",
+        type=int,
+        default=120,
+        metavar="S",
+        help="with --coordinator: seconds to wait for every process to join, and for a silent partner "
+        "before giving up (default 120)",
+    )
     return p
 
 
@@ -107,6 +115,12 @@ def run(args) -> int:
         raise BadInput(
             f"--process-id {args.process_id} must be between 0 and --num-processes - 1 = {args.num_processes - 1}"
         )
+    if args.coordinator is not None:
+        host, sep, port = args.coordinator.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise BadInput(f"--coordinator {args.coordinator!r}: give HOST:PORT, e.g. 10.0.0.1:1234")
+    if args.timeout < 1:
+        raise BadInput(f"--timeout is {args.timeout}: it must be at least 1 s")
     if args.devices is not None and args.devices < 1:
         raise BadInput(f"--devices is {args.devices}: it must be at least 1")
     if args.chunk < 1:
@@ -142,7 +156,20 @@ def run(args) -> int:
     config = config_from(args)
     if all(v is not None for v in distributed):  # before anything starts JAX's backend
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
-        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+        try:
+            jax.distributed.initialize(
+                args.coordinator,
+                args.num_processes,
+                args.process_id,
+                initialization_timeout=args.timeout,
+                heartbeat_timeout_seconds=args.timeout,
+            )
+        except Exception as error:  # XLA's runtime errors carry pages of detail; the first line says it
+            first = str(error).strip().splitlines()[0][:200] if str(error).strip() else type(error).__name__
+            raise BadInput(
+                f"--coordinator {args.coordinator}: the {args.num_processes} processes did not all join within "
+                f"--timeout {args.timeout} s ({first})"
+            ) from None
     spec = sweeps.make_spec(
         config, n=args.n, vary=vary, fixed=fixed, seed=args.seed, table=table, check_step=args.check_step
     )

@@ -20,6 +20,7 @@ from coopjax.objectives.base import (
     Weights,
     check_names,
     loss,
+    mark_unusable,
     register,
 )
 from coopjax.objectives import grip, margin, tracking  # noqa: E402,F401  (the built-in metrics register themselves)
@@ -34,5 +35,6 @@ __all__ = [
     "Weights",
     "check_names",
     "loss",
+    "mark_unusable",
     "register",
 ]

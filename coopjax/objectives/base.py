@@ -188,11 +188,26 @@ class MetricSet(NamedTuple):
         ctx = self.context
         values = {}
         for n in self.names:
-            value = METRICS[n].finalize(acc[n], ctx)
-            values[n] = jnp.where(diverged, jnp.nan, value)
-        values["finite"] = ~diverged
+            values[n] = METRICS[n].finalize(acc[n], ctx)
+        values["finite"] = jnp.ones_like(diverged)
         values["t_diverged"] = jnp.where(diverged, t_diverged, jnp.nan)
-        return Metrics(values)
+        return mark_unusable(Metrics(values), diverged)
+
+
+def mark_unusable(metrics: Metrics, bad) -> Metrics:
+    """Metrics with the samples where `bad` holds marked: NaN values whose derivatives are NaN too,
+    and finite False. (A `where` would pass a cotangent of 0 to them, so `grad` would give 0.0, a
+    derivative an optimiser trusts; a product with NaN gives NaN in forward and reverse mode.)"""
+    poison = jnp.where(bad, jnp.nan, 1.0)
+    values = {}
+    for name, value in metrics._asdict().items():
+        if name == "finite":
+            values[name] = value & ~bad
+        elif name == "t_diverged":
+            values[name] = value
+        else:
+            values[name] = value * poison.astype(value.dtype)  # a product: NaN in both modes
+    return Metrics(values)
 
 
 class Weights(NamedTuple):
