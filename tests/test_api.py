@@ -126,7 +126,7 @@ def test_an_unstable_step_is_marked_not_raised_under_a_trace_and_its_derivative_
     scenario): concretely an InputError; under grad a NaN value with a NaN derivative, never 0.0;
     with check_dt="mark", a per-sample flag, the other samples exact. (The blend switch: its
     gradient compiles in seconds; the marking is `simulate`'s, whatever the switch.)"""
-    run = lambda k, **kw: cj.simulate(cj.make_params(K_GP=k), "paper", dt=2e-3, T=0.2, switch="blend", **kw).metrics
+    run = lambda k, **kw: cj.simulate(cj.make_params(K_GP=k), "paper", dt=2e-3, T=0.06, switch="blend", **kw).metrics
     with pytest.raises(cj.InputError, match="too large"):
         run(50.0)
     slopes = jax.jit(jax.vmap(jax.grad(lambda k: cj.loss(run(k)))))(jnp.array([0.5, 50.0]))
