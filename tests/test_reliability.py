@@ -477,3 +477,44 @@ def test_a_planted_checkpoint_is_refused_in_one_line_and_nothing_in_it_runs(fres
     assert err.count("\n") == 1 and "is not a coopjax tuning checkpoint" in err, err
     assert not os.path.exists(marker)  # nothing in the file was executed
     assert sorted(os.listdir(fresh_dir)) == ["tuned.json.ckpt"]  # and nothing was written
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_selection_or_judging_then_resume_gives_the_uninterrupted_answer(tmp_path):
+    """Several interrupts at random moments after the selection starts (the start's background
+    judging may still be running), each resumed: every resume ends, and with the same answer."""
+    whole = subprocess.run(
+        [sys.executable, "-m", "coopjax.cli", *COMMANDS["tune"]], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    answer = json.load(open(tmp_path / "tuned.json"))["params"]
+    rng = np.random.default_rng(int(time.time()))
+    for trial in range(3):
+        folder = tmp_path / f"trial-{trial}"
+        folder.mkdir()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "coopjax.cli", *COMMANDS["tune"]],
+            cwd=folder,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=_restore_sigint,
+        )
+        for line in proc.stdout:
+            if line.startswith("selecting"):
+                break
+        time.sleep(float(rng.uniform(0.0, 3.0)))
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=120)
+        if proc.returncode == 0:  # it finished first
+            continue
+        assert proc.returncode == 130
+        resumed = subprocess.run(
+            [sys.executable, "-m", "coopjax.cli", *COMMANDS["tune"], "--resume"],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert resumed.returncode == 0, resumed.stderr[-2000:]
+        assert json.load(open(folder / "tuned.json"))["params"] == answer
