@@ -99,6 +99,7 @@ def test_the_carry_examples_run_end_to_end(fresh_dir, capsys):
             assert tuned.verdict.objective == pytest.approx(np.nan if written is None else written, nan_ok=True)
 
 
+@pytest.mark.slow  # the suite's time; the carry examples run the same pipeline end to end in CI
 def test_the_two_scenario_example_runs_end_to_end(fresh_dir, capsys):
     result = check(fresh_dir, capsys, "paper_gains")
     assert result["trajectories"] == 8 * 8 * 2  # 8 candidates x 8 draws x 2 scenarios
