@@ -33,28 +33,27 @@ def test_a_folder_that_cannot_hold_the_cache_is_one_line_and_exit_2(fresh_dir, c
 
 def test_a_second_run_loads_what_the_first_compiled(tmp_path):
     """In real processes (JAX reads its cache settings once per process): the first run fills this
-    machine's subfolder, and the same run again finds every program there and adds nothing."""
+    machine's subfolder; damaged entries are dropped and compiled afresh; a copy of the folder at
+    another path serves the same run without compiling anything anew."""
     folder = tmp_path / "cache"
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"} | {cache.ENV: str(folder)}
     command = [sys.executable, "-m", "coopjax.cli", "simulate", "--scenario", "paper", "--out", str(tmp_path / "r.csv")]
-    runs = []
-    for _ in range(2):
-        subprocess.run(command, env=env, check=True, capture_output=True)
-        runs.append(
-            sorted(os.path.relpath(os.path.join(d, f), folder) for d, _, files in os.walk(folder) for f in files)
-        )
-    assert runs[0], "nothing was cached"
-    assert {os.path.dirname(f) for f in runs[0]} == {cache.machine_tag()}  # one subfolder, this machine's
-    assert runs[1] == runs[0]
+    listing = lambda top: sorted(
+        os.path.relpath(os.path.join(d, f), top) for d, _, files in os.walk(top) for f in files
+    )
+    subprocess.run(command, env=env, check=True, capture_output=True)
+    filled = listing(folder)
+    assert filled, "nothing was cached"
+    assert {os.path.dirname(f) for f in filled} == {cache.machine_tag()}  # one subfolder, this machine's
 
-    # Damage: two entries' contents swapped (each key holding the other program), one truncated, one
-    # random. The next run drops them before JAX reads anything, compiles those programs afresh, says
-    # nothing, and gives the same table.
+    # Damage: two entries' contents swapped (each key holding the other program, the case that made
+    # XLA abort). The next run drops them before JAX reads anything, compiles those programs afresh,
+    # says nothing, and gives the same table. (Truncated and random entries: the test below.)
     sub = folder / cache.machine_tag()
     entries = sorted(p for p in sub.iterdir() if p.name.endswith(cache.SUFFIX))[:2]
     first = (tmp_path / "r.csv").read_bytes()
     a, b = entries[0].read_bytes(), entries[1].read_bytes()
-    for damage in ((b, a),):  # swapped (truncated and random: `test_verify_keeps_recorded...`)
+    for damage in ((b, a),):
         for path, content in zip(entries, damage):
             path.write_bytes(content)
         done = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -64,28 +63,34 @@ def test_a_second_run_loads_what_the_first_compiled(tmp_path):
         assert all(p.exists() and p.read_bytes() != d for p, d in zip(entries, damage))
         assert cache.verify(str(sub)) == []  # and recorded: every entry is what its name says
 
-    # A copy of the folder elsewhere is used there: nothing is dropped, nothing compiled anew.
+    # The same run again, from a copy of the folder at another path: it finds every program there
+    # (nothing dropped, nothing added).
     copy = tmp_path / "copy"
     shutil.copytree(folder, copy)
-    before = sorted(p.name for p in (copy / cache.machine_tag()).iterdir())
-    env_copy = env | {cache.ENV: str(copy)}
-    done = subprocess.run(command, env=env_copy, capture_output=True, text=True)
+    done = subprocess.run(command, env=env | {cache.ENV: str(copy)}, capture_output=True, text=True)
     assert done.returncode == 0
-    assert sorted(p.name for p in (copy / cache.machine_tag()).iterdir()) == before
+    assert listing(copy) == filled
 
 
 def test_verify_keeps_recorded_entries_and_drops_every_other(tmp_path):
-    good, swapped_a, swapped_b, unknown = (tmp_path / f"k{i}{cache.SUFFIX}" for i in range(4))
-    for path, text in ((good, b"good"), (swapped_a, b"program A"), (swapped_b, b"program B")):
-        path.write_bytes(text)
-    (tmp_path / f"k1{cache.ATIME}").write_bytes(b"0")
+    names = ["good", "swapped_a", "swapped_b", "truncated", "random", "emptied"]
+    entries = {n: tmp_path / f"{n}{cache.SUFFIX}" for n in names}
+    for n, path in entries.items():
+        path.write_bytes(f"program {n} ".encode() * 100)
+    (tmp_path / f"swapped_a{cache.ATIME}").write_bytes(b"0")
     cache.record(str(tmp_path))
-    swapped_a.write_bytes(b"program B")
-    swapped_b.write_bytes(b"program A")
+    a, b = entries["swapped_a"].read_bytes(), entries["swapped_b"].read_bytes()
+    entries["swapped_a"].write_bytes(b)
+    entries["swapped_b"].write_bytes(a)
+    entries["truncated"].write_bytes(entries["truncated"].read_bytes()[:50])
+    entries["random"].write_bytes(os.urandom(len(a)))
+    entries["emptied"].write_bytes(b"")
+    unknown = tmp_path / f"unknown{cache.SUFFIX}"
     unknown.write_bytes(b"nobody recorded me")
     removed = cache.verify(str(tmp_path))
-    assert sorted(removed) == sorted(p.name for p in (swapped_a, swapped_b, unknown))
-    assert good.exists() and not swapped_a.exists() and not (tmp_path / f"k1{cache.ATIME}").exists()
+    assert sorted(removed) == sorted(f"{n}{cache.SUFFIX}" for n in names[1:] + ["unknown"])
+    assert entries["good"].exists() and not any(entries[n].exists() for n in names[1:])
+    assert not (tmp_path / f"swapped_a{cache.ATIME}").exists()
     assert cache.verify(str(tmp_path)) == []
 
 

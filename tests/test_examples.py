@@ -85,8 +85,9 @@ def check(fresh_dir, capsys, name: str) -> dict:
 
 
 def test_the_carry_examples_run_end_to_end(fresh_dir, capsys):
-    # One test: the three share their judge's compiled programs (and default and peak_bound their runs').
-    for name in ("default", "peak_bound", "robust_plant"):
+    # One test: the two share their judge's compiled programs and their runs'. (robust_plant, with
+    # four uncertain parameters, runs under -m slow with the two-scenario example.)
+    for name in ("default", "peak_bound"):
         result = check(fresh_dir, capsys, name)
         assert result["trajectories"] == 8 * len(Problem.from_toml(_path(name)).training_draws())
         if name == "peak_bound":  # the Python API's `tune` is the command's answer
@@ -100,6 +101,11 @@ def test_the_carry_examples_run_end_to_end(fresh_dir, capsys):
 
 
 @pytest.mark.slow  # the suite's time; the carry examples run the same pipeline end to end in CI
+def test_the_robust_plant_example_runs_end_to_end(fresh_dir, capsys):
+    check(fresh_dir, capsys, "robust_plant")
+
+
+@pytest.mark.slow
 def test_the_two_scenario_example_runs_end_to_end(fresh_dir, capsys):
     result = check(fresh_dir, capsys, "paper_gains")
     assert result["trajectories"] == 8 * 8 * 2  # 8 candidates x 8 draws x 2 scenarios

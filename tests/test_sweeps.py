@@ -159,6 +159,66 @@ def test_two_processes_under_jax_distributed_give_the_single_process_table(tmp_p
     assert_same_table(read(tmp_path / "single.csv"), read(tmp_path / "multi.csv"))
 
 
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _distributed(i, *extra, port, cwd):
+    flags = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)]
+    return sweep_cli(*extra, *flags, cwd=cwd, background=True)
+
+
+def _coopjax_lines(err):
+    return [ln for ln in err.splitlines() if ln.strip()]
+
+
+def test_processes_with_different_options_are_refused_by_every_one_before_any_work(tmp_path):
+    port = _free_port()
+    procs = [
+        _distributed(i, "--n", n, "--chunk", "8", "--timeout", "60", port=port, cwd=tmp_path)
+        for i, n in ((0, "24"), (1, "32"))
+    ]
+    outs = [p.communicate(timeout=120) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        lines = _coopjax_lines(err)
+        assert p.returncode == 2 and len(lines) == 1 and "runs a different sweep from process 0" in lines[0], err
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_partner_that_never_joins_is_one_line_within_the_timeout(tmp_path):
+    start = time.perf_counter()
+    proc = _distributed(0, "--n", "24", "--chunk", "8", "--timeout", "3", port=_free_port(), cwd=tmp_path)
+    _, err = proc.communicate(timeout=120)
+    lines = _coopjax_lines(err)
+    assert proc.returncode == 1 and len(lines) == 1, err
+    assert "did not join" in lines[0] and "nothing was kept" in lines[0], lines
+    assert time.perf_counter() - start < 60
+    assert sorted(os.listdir(tmp_path)) == ["sweep.csv.distributed.log"]  # XLA's details, said in the line
+
+
+@pytest.mark.slow
+def test_a_partner_killed_during_the_sweep_is_one_line_and_resume_finishes_it(tmp_path):
+    single = sweep_cli("--n", "96", "--chunk", "8", "--out", "single.csv", cwd=tmp_path)
+    assert single.returncode == 0, single.stderr
+    port, parts = _free_port(), tmp_path / "multi.csv.parts"
+    args = ("--n", "96", "--chunk", "8", "--out", "multi.csv", "--timeout", "10")
+    procs = [_distributed(i, *args, port=port, cwd=tmp_path) for i in range(2)]
+    while not (parts.exists() and sum(n.startswith("chunk-") for n in os.listdir(parts)) >= 2):
+        assert procs[0].poll() is None, procs[0].communicate()
+        time.sleep(0.2)
+    procs[1].send_signal(signal.SIGKILL)
+    start = time.perf_counter()
+    _, err = procs[0].communicate(timeout=120)
+    lines = _coopjax_lines(err)
+    assert procs[0].returncode == 1 and len(lines) == 1 and "a partner process was lost" in lines[0], err
+    assert "finished chunks kept in multi.csv.parts" in lines[0] and time.perf_counter() - start < 60
+    resumed = sweep_cli(*args[:-2], "--resume", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    assert_same_table(read(tmp_path / "single.csv"), read(tmp_path / "multi.csv"))
+
+
 def test_a_diverging_sample_is_flagged_and_the_others_are_right():
     # K_GP = 100 takes plain RK4 at dt = 1e-3 beyond its stability limit in the paper scenario.
     spec = sweeps.make_spec("paper", n=6, vary={"K_GP": "choice:0.5,100"}, T=1.5, seed=1, integrator="rk4")

@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
+        args.argv = list(sys.argv[1:] if argv is None else argv)  # what a supervised child repeats
         if args.compiles:  # a command that compiles nothing neither needs the cache nor hears of it
             cache.enable()
         code = args.run(args)

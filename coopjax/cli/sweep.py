@@ -11,7 +11,7 @@ import numpy as np
 
 from coopjax import objectives, sweeps
 from coopjax.status import Status
-from coopjax.cli import interrupts
+from coopjax.cli import interrupts, supervise
 from coopjax.cli.common import BadInput, assignments, check_output, config_arguments, config_from
 from coopjax.config import step_size_note
 from coopjax.io import read_table, write_table
@@ -154,6 +154,15 @@ def run(args) -> int:
             if column.dtype.kind != "f":
                 raise BadInput(f"--from {args.from_file!r}: column {name!r} holds values that are not numbers")
     config = config_from(args)
+    parts = args.out + ".parts"
+    created = not os.path.exists(parts)
+    if all(v is not None for v in distributed) and not supervise.supervised():
+        # The work runs in a child whose native abort (a lost partner) becomes one line here.
+        return supervise.run(
+            args.argv,
+            args.out + ".distributed.log",
+            lambda: kept(parts, created) if args.process_id == 0 else "process 0 keeps the finished chunks",
+        )
     if all(v is not None for v in distributed):  # before anything starts JAX's backend
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         try:
@@ -173,11 +182,16 @@ def run(args) -> int:
     spec = sweeps.make_spec(
         config, n=args.n, vary=vary, fixed=fixed, seed=args.seed, table=table, check_step=args.check_step
     )
-    parts = args.out + ".parts"
-    created = not os.path.exists(parts)
+    if jax.process_count() > 1:
+        _same_sweep_everywhere(spec, args.chunk)
     interrupts.report_with(lambda: kept(parts, created))
     start = time.perf_counter()
-    columns = sweeps.run(spec, chunk=args.chunk, parts=parts, resume=args.resume, progress=not args.quiet)
+    try:
+        columns = sweeps.run(spec, chunk=args.chunk, parts=parts, resume=args.resume, progress=not args.quiet)
+    except Exception as error:  # noqa: BLE001 (re-raised unless it is a failed exchange between processes)
+        if jax.process_count() > 1 and supervise.supervised() and supervise.is_lost(error):
+            supervise.lost(error)
+        raise
     if jax.process_index() == 0:
         write_table(args.out, columns)
         shutil.rmtree(parts, ignore_errors=True)
@@ -185,6 +199,25 @@ def run(args) -> int:
         report(spec, columns, time.perf_counter() - start)
         print(f"wrote {args.out}")
     return 0
+
+
+def _same_sweep_everywhere(spec, chunk: int) -> None:
+    """Every process must run the same sweep: compare fingerprints of the options before any work
+    (a fixed-size exchange, so different options cannot make the collective itself fail)."""
+    import hashlib
+
+    from jax.experimental import multihost_utils
+
+    digest = hashlib.sha256((spec.to_json() + f"|chunk={chunk}").encode()).digest()
+    mine = np.frombuffer(digest[:8], np.int64)
+    with jax.enable_x64(True):
+        every = np.asarray(multihost_utils.process_allgather(mine, tiled=False)).reshape(-1)
+    differ = [i for i, h in enumerate(every) if h != every[0]]
+    if differ:
+        raise BadInput(
+            f"process {differ[0]} runs a different sweep from process 0 (other --n, --vary, --set, --seed, "
+            "--chunk or settings): start every process with the same options"
+        )
 
 
 def kept(parts: str, created: bool) -> str:
