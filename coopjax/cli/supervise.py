@@ -48,7 +48,16 @@ def supervised() -> bool:
 def run(argv: list[str], log_path: str, describe_kept) -> int:
     """Run `coopjax ARGV` as a child and relay it; returns the exit code to give."""
     env = dict(os.environ, **{ENV: "1"})
-    previous = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    # Ctrl-C and SIGTERM go to the child, which answers them in its one line; this process only waits.
+    # (The interrupt watcher's wakeup pipe is set aside meanwhile, or it would answer them too.)
+    wakeup = signal.set_wakeup_fd(-1)
+    child = None
+
+    def forward(signum, frame):
+        if child is not None and child.poll() is None:
+            child.send_signal(signum)
+
+    previous = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
 
     def child_signals():  # the child answers Ctrl-C itself (one line); the parent only waits for it
         for s in (signal.SIGINT, signal.SIGTERM):
@@ -76,6 +85,7 @@ def run(argv: list[str], log_path: str, describe_kept) -> int:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+        signal.set_wakeup_fd(wakeup)
     if code in (0, 1, 2, 3, 130, 143):  # the child said it itself
         return code
     reason = _reason(native)
