@@ -221,6 +221,7 @@ def test_an_incomplete_extension_is_refused_when_it_is_registered():
     assert "no observe" not in integration.INTEGRATORS and "no candidates" not in TUNERS
 
 
+@pytest.mark.slow  # the suite's time (25 s); registration and its checks stay in CI (above)
 def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_dir, capsys):
     small = [*SMALL_TUNE, "--quiet"]
     code = cli.main(["tune", "--method", "best start", "--pick", "1", *small, "--out", "best.json"])

@@ -189,7 +189,7 @@ def test_processes_with_different_options_are_refused_by_every_one_before_any_wo
 
 def test_a_partner_that_never_joins_is_one_line_within_the_timeout(tmp_path):
     start = time.perf_counter()
-    proc = _distributed(0, "--n", "24", "--chunk", "8", "--timeout", "3", port=_free_port(), cwd=tmp_path)
+    proc = _distributed(0, "--n", "24", "--chunk", "8", "--timeout", "1", port=_free_port(), cwd=tmp_path)
     _, err = proc.communicate(timeout=120)
     lines = _coopjax_lines(err)
     assert proc.returncode == 1 and len(lines) == 1, err
