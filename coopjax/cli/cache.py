@@ -216,9 +216,11 @@ def _listen() -> None:
     def show(message, category, filename, lineno, file=None, line=None):
         text = str(message)
         if "persistent compilation cache" in text:
-            kind = "read" if "reading" in text else "written"
+            what = text.rsplit(": ", 1)[-1][:80]
             note = (
-                f"the compile cache could not be {kind} ({text.rsplit(': ', 1)[-1][:80]}); those programs were compiled"
+                f"the compile cache could not be read ({what}); those programs were compiled afresh"
+                if "reading" in text
+                else f"the compile cache could not be written ({what}); a later run compiles those programs again"
             )
             if not any(n.startswith("the compile cache could not") for n in _notes):
                 _notes.append(note)
