@@ -474,8 +474,10 @@ def test_a_planted_checkpoint_is_refused_in_one_line_and_nothing_in_it_runs(fres
         else:
             f.write(b"not a checkpoint\n")
     assert cli.main([*COMMANDS["tune"], "--resume"]) == 2
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert err.count("\n") == 1 and "is not a coopjax tuning checkpoint" in err, err
+    assert captured.out == ""  # refused before the run says anything
     assert not os.path.exists(marker)  # nothing in the file was executed
     assert sorted(os.listdir(fresh_dir)) == ["tuned.json.ckpt"]  # and nothing was written
 

@@ -577,6 +577,9 @@ def _resumable(files):
 def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
     start = time.perf_counter()
     problem, tuner = plan.problem, plan.tuner
+    starts = plan.starts_for(plan.seed)
+    if resume:  # a checkpoint that is not this run's is refused before anything starts or prints
+        driver.load_checkpoint(files["checkpoint"], driver.identity(tuner, problem, starts, plan.seed))
     print(
         f"tuning {', '.join(problem.names)} with {tuner.name}: {tuner.plan_text(len(problem.names), plan.starts)}; "
         f"{problem.switch} model ({problem.config.method}, "
@@ -590,9 +593,6 @@ def _tune_and_report(plan: Plan, files, resume: bool, quiet: bool) -> int:
         if text:
             print(text)
 
-    starts = plan.starts_for(plan.seed)
-    if resume:  # a checkpoint that is not this run's is refused before anything starts
-        driver.load_checkpoint(files["checkpoint"], driver.identity(tuner, problem, starts, plan.seed))
     start_side = _StartSide(plan)
     result = driver.run(
         tuner,

@@ -220,8 +220,15 @@ def load_checkpoint(path: str, ident: dict) -> dict:
         index = json.loads(str(stored.pop("index")))
         if index.get("kind") != CHECKPOINT_KIND:
             raise ValueError("no checkpoint index")
-    except Exception as error:  # a foreign, damaged or pickled file: said, never run
-        raise refuse(type(error).__name__ if not isinstance(error, ValueError) else str(error)[:60]) from None
+    except Exception:  # a foreign, damaged or pickled file: said, never run
+        try:
+            with open(path, "rb") as f:
+                pickled = f.read(1) == b"\x80"  # a pickle's protocol mark
+        except OSError:
+            pickled = False
+        raise refuse(
+            "a pickle, which is never loaded" if pickled else "not an archive of arrays with an index"
+        ) from None
     if index["format"] != CHECKPOINT_FORMAT:
         raise InputError(
             f"{path} was written by another version of coopjax (format {index['format']}): delete it", "resume"
