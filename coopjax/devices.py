@@ -174,16 +174,19 @@ def _joined(parts, size, batched):
 # and wait for each other forever at a collective. Compiling needs no lock; running holds it until
 # the outputs are ready.
 EXCLUSIVE = threading.RLock()
-_EXECUTABLES: dict = {}
+_EXECUTABLES: dict = {}  # every program compiled ahead of time in this process (`compiled`)
+MAX_EXECUTABLES = 256
 
 
-def compiled(program, *args):
+def compiled(program, *args, key=None):
     """`program` (a jitted function) compiled ahead of time for these arguments' shapes, dtypes and
-    shardings, once per process."""
+    shardings, once per process. `key` names the program (default: the function object itself), for
+    callers whose programs are rebuilt from a description."""
     leaves, tree = jax.tree_util.tree_flatten(args)
-    key = (program, str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
+    signature = (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
+    key = (program if key is None else key, *signature)
     if key not in _EXECUTABLES:
-        if len(_EXECUTABLES) >= 64:  # as `_compiled`'s cache: the oldest goes
+        if len(_EXECUTABLES) >= MAX_EXECUTABLES:  # the oldest goes
             del _EXECUTABLES[next(iter(_EXECUTABLES))]
         _EXECUTABLES[key] = program.lower(*args).compile()
     return _EXECUTABLES[key]

@@ -118,11 +118,6 @@ def _algebra(problem: Problem, kind: str | None, scalar, K: int):
     return jax.jit(reverse)
 
 
-# Compiled run programs, shared by every evaluator of the process (problems that differ only in
-# their terms and requirements run the same programs).
-_EXECUTABLES: dict = {}
-
-
 class Evaluator:
     """Runs queries for one problem and base; counts trajectories and keeps compile time apart.
     `base` is every parameter the problem neither tunes nor draws (its fixed values are applied here)."""
@@ -133,17 +128,14 @@ class Evaluator:
         self.trajectories = 0
 
     def _call(self, key, fn, args, execute: bool):
-        """`fn` at `args`, compiled once per key and shapes in this process (its compile time
-        counted); with execute False, only compiled, and the outputs' shapes returned."""
-        leaves, tree = jax.tree_util.tree_flatten(args)
-        key = key + (str(tree), tuple((np.shape(x), str(x.dtype)) for x in leaves))
-        if key not in _EXECUTABLES:
-            start = time.perf_counter()
-            _EXECUTABLES[key] = fn.lower(*args).compile()
-            self.compile_s += time.perf_counter() - start
+        """`fn` at `args`, compiled once per key and shapes in this process (`devices.compiled`; its
+        compile time counted); with execute False, only compiled, and the outputs' shapes returned."""
+        start = time.perf_counter()
+        executable = devices.compiled(fn, *args, key=key)
+        self.compile_s += time.perf_counter() - start
         if execute:
             with devices.EXCLUSIVE:  # one multi-device program at a time (see `coopjax.devices`)
-                return jax.block_until_ready(_EXECUTABLES[key](*args))
+                return jax.block_until_ready(executable(*args))
         return jax.eval_shape(fn, *args)
 
     def _kinds(self, query: Query) -> tuple[str | None, str | None]:

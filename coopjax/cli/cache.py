@@ -43,6 +43,7 @@ SUMS = "coopjax-sums.json"  # in each machine's subfolder: entry name -> [size, 
 SUFFIX, ATIME = "-cache", "-atime"  # JAX's names for an entry and its access time
 _notes: list[str] = []  # what the run should hear about its cache, said once at its end
 _compiled = [False]
+_listening = [False]
 
 
 def location(environ=os.environ) -> tuple[str | None, bool]:
@@ -208,9 +209,13 @@ def _record_quietly(folder: str) -> None:
 
 
 def _listen() -> None:
-    """Turn JAX's cache warnings into one note, and notice whether the run compiled anything."""
+    """Turn JAX's cache warnings into one note, and notice whether the run compiled anything (once
+    per process: a test, or a program calling `main` again, must not stack the hooks)."""
     import jax
 
+    if _listening[0]:
+        return
+    _listening[0] = True
     shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
