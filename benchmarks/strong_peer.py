@@ -320,10 +320,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         return sd0 / d if d > EPS else (ONE if sd0 >= Z0 else Z0)
 
     @inline
-    def lam_of(sd0, sd1, sigma_n, theta_b, theta_a, hold, in_c, free):
+    def lam_of(sd0, sd1, sigma_n, theta_b, theta_a, hold, in_c, free, leave):
         """filippov.weight with the substep start's fractions."""
         raw = raw_of(sd0, sd1)
         lam_star = raw if free else min(max(raw, Z0), ONE)
+        lam_star = T(leave) if leave >= 0 else lam_star
         lam = (ONE - theta_b) * lam_star if sigma_n < Z0 else theta_a + (ONE - theta_a) * lam_star
         lam = T(hold) if hold >= 0 else lam
         return lam if in_c else Z0
@@ -380,10 +381,12 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         hs = h if h > Z0 else ONE
         curvature = (se - sn - rate * hs) / (hs * hs)
         disc = rate * rate - T(4.0) * curvature * sn
-        real = (sn < Z0) and (se > Z0) and (disc >= Z0)
-        den = rate + math.sqrt(disc if real else ONE)
+        real = (sn <= Z0) and (se > Z0) and (disc >= Z0)
+        root = math.sqrt(disc if real else ONE)
+        num = -TWO * sn if rate > Z0 else root - rate
+        den = rate + root if rate > Z0 else TWO * curvature
         ok = real and (den > Z0)
-        return min(max(-TWO * sn / den, Z0), h) if ok else h
+        return min(max(num / den, Z0), h) if ok else h
 
     @inline
     def found(off, on_, sn, sd0, sd1, in_c, rate, kelvin_end, F_lim, h, fresh):
@@ -459,15 +462,38 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
 
     @inline
     def stage(
-        P, b, y, k, c, t, cos, sin, on_L, on_R, impL, impR, sn_L, sn_R, tbL, taL, tbR, taR, holdL, holdR, frL, frR
+        P,
+        b,
+        y,
+        k,
+        c,
+        t,
+        cos,
+        sin,
+        on_L,
+        on_R,
+        impL,
+        impR,
+        sn_L,
+        sn_R,
+        tbL,
+        taL,
+        tbR,
+        taR,
+        holdL,
+        holdR,
+        frL,
+        frR,
+        lvL,
+        lvR,
     ):
         """One of the stages after the first: the rates at y + c k, t + c, with the substep's plan,
         and each robot's unclipped lambda* there."""
         ys = axpy(y, c, k)
         ts, cs, ss = advance(t, cos, sin, c)
         gL, gR, jL, jR, _, _, a_s, _, _, _, _ = evaluate(P, b, ys, ts, cs, ss, on_L, on_R, impL, impR)
-        lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL, frL)
-        lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR, frR)
+        lL = lam_of(gL[2], gL[3], sn_L, tbL, taL, holdL, jL, frL, lvL)
+        lR = lam_of(gR[2], gR[3], sn_R, tbR, taR, holdR, jR, frR, lvR)
         return (
             assemble(blend(gL[0], gL[1], lL), blend(gR[0], gR[1], lR), ys[19], a_s),
             raw_of(gL[2], gL[3]),
@@ -504,9 +530,14 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         frR = (
             inR and holdR < 0 and rawR > Z0 and rawR < ONE and not last and ((tbR < ONE) if sn_R < Z0 else (taR < ONE))
         )
+        # Leaving the surface at the start (filippov.substep): lambda* held at 1 (upwards) or 0.
+        nearL = inL and holdL < 0 and ((tbL < ONE) if sn_L < Z0 else (taL < ONE))
+        nearR = inR and holdR < 0 and ((tbR < ONE) if sn_R < Z0 else (taR < ONE))
+        lvL = (1 if rawL >= ONE else (0 if rawL <= Z0 else -1)) if nearL else -1
+        lvR = (1 if rawR >= ONE else (0 if rawR <= Z0 else -1)) if nearR else -1
         # Stage 0 (at the start), then the three others.
-        lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL)
-        lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR, frR)
+        lamL = lam_of(fL[2], fL[3], sn_L, tbL, taL, holdL, inL, frL, lvL)
+        lamR = lam_of(fR[2], fR[3], sn_R, tbR, taR, holdR, inR, frR, lvR)
         k = assemble(blend(fL[0], fL[1], lamL), blend(fR[0], fR[1], lamR), y[19], a_o)
         k2, _, _ = stage(
             P,
@@ -531,6 +562,8 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             holdR,
             frL,
             frR,
+            lvL,
+            lvR,
         )
         k3, _, _ = stage(
             P,
@@ -555,6 +588,8 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             holdR,
             frL,
             frR,
+            lvL,
+            lvR,
         )
         k4, endL, endR = stage(
             P,
@@ -579,15 +614,20 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
             holdR,
             frL,
             frR,
+            lvL,
+            lvR,
         )
         total = weighted(k, k2, k3, k4)
         # The switch held through the whole piece, below (off) or above (on) the surface.
-        offL = inL and sn_L < Z0 and (holdL == 0 or (holdL < 0 and tbL >= ONE))
-        onL_ = inL and sn_L > Z0 and (holdL == 1 or (holdL < 0 and taL >= ONE))
-        offR = inR and sn_R < Z0 and (holdR == 0 or (holdR < 0 and tbR >= ONE))
-        onR_ = inR and sn_R > Z0 and (holdR == 1 or (holdR < 0 and taR >= ONE))
-        heldL = (offL, onL_, sn_L, fL[2], fL[3], inL, fL[2] + lamL * (fL[3] - fL[2]))
-        heldR = (offR, onR_, sn_R, fR[2], fR[3], inR, fR[2] + lamR * (fR[3] - fR[2]))
+        # Its sign by round-off does not decide: a robot on the surface holds what it leaves with.
+        offL = inL and (holdL == 0 or (holdL < 0 and sn_L < Z0 and tbL >= ONE) or lvL == 0)
+        onL_ = inL and (holdL == 1 or (holdL < 0 and sn_L > Z0 and taL >= ONE) or lvL == 1)
+        offR = inR and (holdR == 0 or (holdR < 0 and sn_R < Z0 and tbR >= ONE) or lvR == 0)
+        onR_ = inR and (holdR == 1 or (holdR < 0 and sn_R > Z0 and taR >= ONE) or lvR == 1)
+        shL = max(sn_L, Z0) if onL_ else (min(sn_L, Z0) if offL else sn_L)
+        shR = max(sn_R, Z0) if onR_ else (min(sn_R, Z0) if offR else sn_R)
+        heldL = (offL, onL_, shL, fL[2], fL[3], inL, fL[2] + lamL * (fL[3] - fL[2]))
+        heldR = (offR, onR_, shR, fR[2], fR[3], inR, fR[2] + lamR * (fR[3] - fR[2]))
         slides = (frL, rawL, endL, frR, rawR, endR)
         # The piece ends on the surface where its plan ended it at a switch (not a hold kept from an exit).
         return (

@@ -119,6 +119,7 @@ class Overrides(NamedTuple):
     apart: tuple  # bool: contact held off (the piece that ends at the robot's impact)
     switch: tuple | None = None  # `Switch` codes: w_i held through the piece, or FREE
     free: tuple | None = None  # bool: sliding through the piece with lambda* unclipped (the exit trial)
+    leaving: tuple | None = None  # `Switch`: leaving the surface at the piece's start, upwards (ON) or down (OFF)
 
 
 class Touch(NamedTuple):
@@ -219,19 +220,21 @@ def sliding_weight(f: Fields):
     return jnp.where(sliding, sd0 / jnp.where(sliding, delta, 1.0), (sd0 >= 0.0).astype(sd0.dtype))
 
 
-def weight(f: Fields, sigma_n, h, switch=None, theta=None, free=None):
+def weight(f: Fields, sigma_n, h, switch=None, theta=None, free=None, leaving=None):
     """lambda of one robot (B,): steps 1 and 2 of the scheme (module docstring), at one stage.
 
     sigma_n is sigma at the (sub)step start; h the (sub)step length, per sample (B,); `theta` the
     substep start's `fractions` (taken from this point's rates if None); `switch` (B,) holds w at
     OFF (0) or ON (1) where it is not `Switch.FREE`; where `free` (B,) holds, lambda* is not clipped
     (the sliding motion continued past its exit, for `step` to locate the exit on the piece's
-    solution).
+    solution); where `leaving` (B,) is ON (OFF), lambda* is 1 (0) through the piece (`leaving`).
     """
     lam_star_unclipped = sliding_weight(f)
     lam_star = jnp.clip(lam_star_unclipped, 0.0, 1.0)
     if free is not None:
         lam_star = jnp.where(free, lam_star_unclipped, lam_star)
+    if leaving is not None:
+        lam_star = jnp.where(leaving != Switch.FREE, leaving.astype(lam_star.dtype), lam_star)
     theta_below, theta_above = fractions(f, sigma_n, h) if theta is None else theta
     lam = jnp.where(sigma_n < 0.0, (1.0 - theta_below) * lam_star, theta_above + (1.0 - theta_above) * lam_star)
     if switch is not None:
@@ -263,8 +266,12 @@ def aux(f: Fields, lam) -> model.Aux:
 def _rates(fs, body, sigma_n, h, overrides: Overrides, thetas) -> Rows:
     """The state's rates at one stage of a piece: each robot's rows weighted by its lambda."""
     free = (None, None) if overrides.free is None else overrides.free
+    leaving = (None, None) if overrides.leaving is None else overrides.leaving
     return Rows(
-        tuple(combine(fs[i], weight(fs[i], sigma_n[i], h, overrides.switch[i], thetas[i], free[i])) for i in range(2)),
+        tuple(
+            combine(fs[i], weight(fs[i], sigma_n[i], h, overrides.switch[i], thetas[i], free[i], leaving[i]))
+            for i in range(2)
+        ),
         body,
     )
 
@@ -355,17 +362,23 @@ def crossing(sigma_n, rate, sigma_end, h):
     """Where sigma, held on one side of the surface through a piece of length h, reaches 0 in it: the
     root of the quadratic with sigma's value and rate at the start and its value at the end (the
     piece's own RK4 solution, so fast modes too small to see in the start's rates are in it).
-    For sigma_n < 0 < sigma_end, written without cancellation; the caller flips signs for the
+    For sigma_n <= 0 < sigma_end, written without cancellation; the caller flips signs for the
     crossing from above. Where there is no crossing the value is meaningless (the caller masks it);
     divisions are guarded so that it puts no NaN in a gradient."""
     hs = jnp.where(h > 0.0, h, 1.0)
     curvature = (sigma_end - sigma_n - rate * hs) / hs**2
     disc = rate**2 - 4.0 * curvature * sigma_n
-    real = (sigma_n < 0.0) & (sigma_end > 0.0) & (disc >= 0.0)
-    denominator = rate + jnp.sqrt(jnp.where(real, disc, 1.0))
+    real = (sigma_n <= 0.0) & (sigma_end > 0.0) & (disc >= 0.0)
+    root = jnp.sqrt(jnp.where(real, disc, 1.0))
+    # The positive root in the form without cancellation for each sign of the rate: for a rate
+    # <= 0 (sigma first moves away from the surface, as for a robot that has just left it) and
+    # sigma_n -> 0, the root tends to the return time -rate / curvature, not to 0.
+    rising = rate > 0.0
+    numerator = jnp.where(rising, -2.0 * sigma_n, root - rate)
+    denominator = jnp.where(rising, rate + root, 2.0 * curvature)
     ok = real & (denominator > 0.0)
     # A crossing always has a root in (0, h); `ok` fails only to round-off, at its end.
-    return jnp.where(ok, jnp.clip(-2.0 * sigma_n / jnp.where(ok, denominator, 1.0), 0.0, h), h)
+    return jnp.where(ok, jnp.clip(numerator / jnp.where(ok, denominator, 1.0), 0.0, h), h)
 
 
 class Held(NamedTuple):
@@ -488,7 +501,20 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
         & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0)
         for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas)
     )
-    overrides = piece.overrides._replace(free=free)
+    # A robot on the surface at the start (reaching it within the piece) whose lambda* is outside
+    # [0, 1] leaves it at once: upwards (ON) for lambda* >= 1, downwards (OFF) for lambda* <= 0. It
+    # is then held as a robot just above (below) the surface is, whatever the sign of sigma_n's
+    # round-off: switched on (off) through the piece, its return to the surface looked for on the
+    # piece's solution. Decided on the sign of sigma_n, a 1e-14 N change moved the step by O(dt).
+    leaving = tuple(
+        jnp.where(
+            f.in_contact & (switch == Switch.FREE) & jnp.where(s_n < 0.0, theta_below < 1.0, theta_above < 1.0),
+            jnp.where(r >= 1.0, Switch.ON, jnp.where(r <= 0.0, Switch.OFF, Switch.FREE)),
+            Switch.FREE,
+        )
+        for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas)
+    )
+    overrides = piece.overrides._replace(free=free, leaving=leaving)
     k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
     # The start's weights without `free`: lambda* clipped, so the recorded signals and `Held.rate`
     # are the clipped sliding motion's, where the stages' rates continue it unclipped.
@@ -514,10 +540,20 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
     # Per robot, the switch held off (on) through the whole piece below (above) the surface: where
     # `step` looks at the piece's end for a crossing its start did not predict.
     held = []
-    for f, s_n, switch, (theta_below, theta_above), lam in zip(fs, sigma_n, held_switch, thetas, weights):
+    for f, s_n, switch, (theta_below, theta_above), lam, away in zip(
+        fs, sigma_n, held_switch, thetas, weights, leaving
+    ):
         free_here = switch == Switch.FREE
-        off = f.in_contact & (s_n < 0.0) & ((switch == Switch.OFF) | (free_here & (theta_below >= 1.0)))
-        on = f.in_contact & (s_n > 0.0) & ((switch == Switch.ON) | (free_here & (theta_above >= 1.0)))
+        # Held off: below the surface, or on it and switched off (a sliding exit downwards, or
+        # leaving it), whichever side of it round-off puts sigma_n; held on likewise.
+        off = f.in_contact & (
+            (switch == Switch.OFF) | (free_here & (s_n < 0.0) & (theta_below >= 1.0)) | (away == Switch.OFF)
+        )
+        on = f.in_contact & (
+            (switch == Switch.ON) | (free_here & (s_n > 0.0) & (theta_above >= 1.0)) | (away == Switch.ON)
+        )
+        # Its crossing is looked for from its own side of the surface.
+        s_n = jnp.where(on, jnp.maximum(s_n, 0.0), jnp.where(off, jnp.minimum(s_n, 0.0), s_n))
         held.append(Held(off, on, s_n, f.sd0, f.sd1, f.in_contact, f.sd0 + lam * (f.sd1 - f.sd0)))
     slides = tuple(Slide(free[i], lam_star[i], lam_stars[-1, i]) for i in range(2))
     end = _axpy(rows, piece.h / RK4.denominator, total)
@@ -555,7 +591,7 @@ def as_buffers(values, fallback):
     measured slower in paired runs (docs/speed.md, "What was tried").
     """
     h = values[0]
-    return jax.lax.cond((h >= 0.0).all(), lambda pair: pair[0], lambda pair: pair[1], (values, fallback))
+    return jax.lax.cond(~(h < 0.0).any(), lambda pair: pair[0], lambda pair: pair[1], (values, fallback))
 
 
 class Progress(NamedTuple):
