@@ -194,6 +194,9 @@ def test_crossing_is_the_root_of_the_quadratic_through_the_piece():
         s_end = s_n + rate * h + curvature * h**2
         located = crossing(jnp.array(s_n), jnp.array(rate), jnp.array(s_end), jnp.array(h))
         assert float(located) == pytest.approx(root, rel=1e-12) and root == pytest.approx(5e-4, rel=1e-9)
+    # sigma_n = 0 with no rate: a double root at 0, where the square root's derivative is infinite.
+    at_rest = lambda s_n, s_end: crossing(s_n, jnp.array(0.0), s_end, jnp.array(h))
+    assert np.all(np.isfinite(np.asarray(jax.grad(at_rest, argnums=(0, 1))(0.0, 0.01))))
 
 
 def test_a_crossing_the_first_order_prediction_puts_beyond_the_step_is_located_at_the_true_time():
@@ -387,3 +390,15 @@ def test_a_sample_never_depends_on_the_others_in_its_batch():
         np.testing.assert_array_equal(
             np.delete(np.asarray(getattr(a, name)), 5), np.delete(np.asarray(getattr(b, name)), 5)
         )
+
+
+def test_reverse_mode_through_the_step_equals_forward_mode():
+    """`grad` and `jvp` of the carry's peak force through the sliding-mode step (impacts, sliding,
+    located crossings) agree: no branch that a `where` leaves out puts an infinite derivative, and
+    so a NaN, into the reverse pass (a square root at 0 did)."""
+    import jax
+
+    peak = lambda k: cj.simulate(cj.make_params(K_GP=k), "carry", T=0.5).metrics.peak_grip
+    reverse = float(jax.jit(jax.grad(peak))(0.5))
+    forward = float(jax.jit(lambda k: jax.jvp(peak, (k,), (jnp.ones_like(k),))[1])(0.5))
+    assert np.isfinite(reverse) and reverse == pytest.approx(forward, rel=1e-10)

@@ -369,7 +369,8 @@ def crossing(sigma_n, rate, sigma_end, h):
     curvature = (sigma_end - sigma_n - rate * hs) / hs**2
     disc = rate**2 - 4.0 * curvature * sigma_n
     real = (sigma_n <= 0.0) & (sigma_end > 0.0) & (disc >= 0.0)
-    root = jnp.sqrt(jnp.where(real, disc, 1.0))
+    positive = real & (disc > 0.0)  # sqrt's derivative is infinite at 0: it would put a NaN in a gradient
+    root = jnp.where(positive, jnp.sqrt(jnp.where(positive, disc, 1.0)), 0.0)
     # The positive root in the form without cancellation for each sign of the rate: for a rate
     # <= 0 (sigma first moves away from the surface, as for a robot that has just left it) and
     # sigma_n -> 0, the root tends to the return time -rate / curvature, not to 0.
