@@ -54,9 +54,18 @@ _jacobians_jit = jax.jit(_jacobians, static_argnums=(1, 2))
 def fastest_modes(params: Params, config) -> np.ndarray:
     """Eigenvalues (1/s) of the linearised loop, shape (B, 2 operating points, 20)."""
     batched, _ = as_batched(params)
+    size = batched.batch_shape[-1]
+    # Padded (repeating the last sample) to a power of two of at least 64: one compiled program
+    # serves every batch size up to it, where each new size compiled its own (1 to 2 s each).
+    pad = max(64, 1 << (size - 1).bit_length()) - size
     with jax.enable_x64(True):  # float64 whatever the run uses: the limit must not depend on it
-        batched = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), batched)
-        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))
+        batched = jax.tree_util.tree_map(
+            lambda x: np.concatenate(
+                [np.asarray(x, np.float64), np.repeat(np.asarray(x, np.float64)[..., -1:], pad, -1)], -1
+            ),
+            batched,
+        )
+        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))[..., :size, :, :, :]
     return np.linalg.eigvals(J)
 
 

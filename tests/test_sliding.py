@@ -392,10 +392,12 @@ def test_a_sample_never_depends_on_the_others_in_its_batch():
         )
 
 
+@pytest.mark.slow
 def test_reverse_mode_through_the_step_equals_forward_mode():
     """`grad` and `jvp` of the carry's peak force through the sliding-mode step (impacts, sliding,
     located crossings) agree: no branch that a `where` leaves out puts an infinite derivative, and
-    so a NaN, into the reverse pass (a square root at 0 did)."""
+    so a NaN, into the reverse pass (a square root at 0 did; `crossing`'s own test guards that one
+    in every run). Slow: the two programs take 45 s to compile."""
     import jax
 
     peak = lambda k: cj.simulate(cj.make_params(K_GP=k), "carry", T=0.5).metrics.peak_grip
