@@ -155,11 +155,13 @@ def run(
         for s in range(0, size + pad, slab)
     ]
     if n == 1:
-        return jax.tree_util.tree_map(jnp.asarray, _joined(jax.device_get([program(x) for x in slabs]), size, batched))
+        return jax.tree_util.tree_map(
+            jax.device_put, _joined(jax.device_get([program(x) for x in slabs]), size, batched)
+        )
     executable = compiled(program, slabs[0])  # outside the lock: another thread's programs may run meanwhile
     with EXCLUSIVE:
         parts = jax.device_get(jax.block_until_ready([executable(x) for x in slabs]))
-    return jax.tree_util.tree_map(jnp.asarray, _joined(parts, size, batched))
+    return jax.tree_util.tree_map(jax.device_put, _joined(parts, size, batched))
 
 
 def _joined(parts, size, batched):
