@@ -96,7 +96,8 @@ def _place(tree, n_devices):
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, jax.sharding.NamedSharding(mesh, batch_spec(x))), tree)
 
 
-def _pad(leaves, pad, xp):
+def pad_batch(leaves, pad, xp):
+    """Each leaf with its last (batch) axis lengthened by `pad` copies of its last sample."""
     if not pad:
         return leaves
     return [xp.concatenate([x, xp.repeat(x[..., -1:], pad, axis=-1)], axis=-1) for x in leaves]
@@ -140,14 +141,14 @@ def run(
         if not (shard_traced and n > 1 and shape):
             return fn(params)
         pad = -size % n
-        padded = jax.tree_util.tree_unflatten(tree, _pad(leaves, pad, jnp))
+        padded = jax.tree_util.tree_unflatten(tree, pad_batch(leaves, pad, jnp))
         return _unpad(_per_device(lambda p: fn(p), jax.local_devices()[:n], batched)(padded), size, batched)
     _warn_one_core(size)
     if not shape or (n == 1 and not fixed_block):
         return _compiled(fn, 1, batched, False)(params)
     slab = n * block if (fixed_block or size > n * block) else -(-size // n) * n
     pad = -size % slab
-    host = _pad([np.asarray(x) for x in leaves], pad, np)
+    host = pad_batch([np.asarray(x) for x in leaves], pad, np)
     program = _compiled(fn, n, batched, n > 1)
     place = (lambda t: _place(t, n)) if n > 1 else (lambda t: t)
     slabs = [
@@ -155,13 +156,12 @@ def run(
         for s in range(0, size + pad, slab)
     ]
     if n == 1:
-        return jax.tree_util.tree_map(
-            jax.device_put, _joined(jax.device_get([program(x) for x in slabs]), size, batched)
-        )
-    executable = compiled(program, slabs[0])  # outside the lock: another thread's programs may run meanwhile
-    with EXCLUSIVE:
-        parts = jax.device_get(jax.block_until_ready([executable(x) for x in slabs]))
-    return jax.tree_util.tree_map(jax.device_put, _joined(parts, size, batched))
+        parts = [program(x) for x in slabs]
+    else:
+        executable = compiled(program, slabs[0])  # outside the lock: another thread's programs may run meanwhile
+        with EXCLUSIVE:
+            parts = jax.block_until_ready([executable(x) for x in slabs])
+    return jax.tree_util.tree_map(jax.device_put, _joined(jax.device_get(parts), size, batched))
 
 
 def _joined(parts, size, batched):

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import model, scenarios
+from coopjax import devices, model, scenarios
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS, max_stable_dt, rk4_amplification
 from coopjax.params import Params, as_batched, is_traced
@@ -58,14 +58,12 @@ def fastest_modes(params: Params, config) -> np.ndarray:
     # Padded (repeating the last sample) to a power of two of at least 64: one compiled program
     # serves every batch size up to it, where each new size compiled its own (1 to 2 s each).
     pad = max(64, 1 << (size - 1).bit_length()) - size
+    leaves, tree = jax.tree_util.tree_flatten(batched)
+    batched = jax.tree_util.tree_unflatten(
+        tree, devices.pad_batch([np.asarray(x, np.float64) for x in leaves], pad, np)
+    )
     with jax.enable_x64(True):  # float64 whatever the run uses: the limit must not depend on it
-        batched = jax.tree_util.tree_map(
-            lambda x: np.concatenate(
-                [np.asarray(x, np.float64), np.repeat(np.asarray(x, np.float64)[..., -1:], pad, -1)], -1
-            ),
-            batched,
-        )
-        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))[..., :size, :, :, :]
+        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))[:size]
     return np.linalg.eigvals(J)
 
 
