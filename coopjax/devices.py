@@ -9,6 +9,7 @@ padding, slabs, `shard_map`, unpadding. `simulate`, the sweeps and the tuner all
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import os
 import threading
@@ -181,19 +182,33 @@ def _joined(parts, size, batched):
 # and wait for each other forever at a collective. Compiling needs no lock; running holds it until
 # the outputs are ready.
 EXCLUSIVE = threading.RLock()
-_EXECUTABLES: dict = {}  # every program compiled ahead of time in this process (`compiled`)
+# Every program compiled ahead of time in this process (`compiled`), as a future: a thread that asks
+# for a program another thread is compiling waits for it instead of compiling it again.
+_EXECUTABLES: dict[tuple, concurrent.futures.Future] = {}
+_COMPILING = threading.Lock()
 MAX_EXECUTABLES = 256
 
 
 def compiled(program, *args, key=None):
     """`program` (a jitted function) compiled ahead of time for these arguments' shapes, dtypes and
-    shardings, once per process. `key` names the program (default: the function object itself), for
-    callers whose programs are rebuilt from a description."""
+    shardings, once per process, whichever thread asks first. `key` names the program (default: the
+    function object itself), for callers whose programs are rebuilt from a description."""
     leaves, tree = jax.tree_util.tree_flatten(args)
     signature = (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
     key = (program if key is None else key, *signature)
-    if key not in _EXECUTABLES:
-        if len(_EXECUTABLES) >= MAX_EXECUTABLES:  # the oldest goes
-            del _EXECUTABLES[next(iter(_EXECUTABLES))]
-        _EXECUTABLES[key] = program.lower(*args).compile()
-    return _EXECUTABLES[key]
+    with _COMPILING:
+        future, mine = _EXECUTABLES.get(key), False
+        if future is None:
+            if len(_EXECUTABLES) >= MAX_EXECUTABLES:  # the oldest goes
+                del _EXECUTABLES[next(iter(_EXECUTABLES))]
+            future = _EXECUTABLES[key] = concurrent.futures.Future()
+            mine = True
+    if mine:
+        try:
+            future.set_result(program.lower(*args).compile())
+        except BaseException as error:
+            with _COMPILING:  # the next caller tries again (and meets the error itself)
+                _EXECUTABLES.pop(key, None)
+            future.set_exception(error)
+            raise
+    return future.result()

@@ -40,6 +40,9 @@ class Analytic:
     def warm_up(self, query):
         pass
 
+    def prepare(self, queries):
+        pass
+
     def __call__(self, query):
         C, n = query.thetas.shape
         M = 3

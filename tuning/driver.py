@@ -118,6 +118,7 @@ def run(
     log: list[tuple[Query, Evaluation]] = []
     clock: list[tuple[float, int]] = []  # (elapsed s, trajectories) after each logged evaluation
     state = tuner.init(problem, np.asarray(starts), seed)
+    evaluator.prepare(tuner.later_queries(state))
     record = Record.empty()
     elapsed, trajectories = 0.0, 0
     if checkpoint and os.path.exists(checkpoint):

@@ -19,6 +19,7 @@ spend evaluating. The batch is split over every local device inside the run prog
 from __future__ import annotations
 
 import functools
+import threading
 import time
 
 import jax
@@ -127,12 +128,14 @@ class Evaluator:
         self.compile_s = 0.0
         self.trajectories = 0
 
-    def _call(self, key, fn, args, execute: bool):
+    def _call(self, key, fn, args, execute: bool, clock: bool = True):
         """`fn` at `args`, compiled once per key and shapes in this process (`devices.compiled`; its
-        compile time counted); with execute False, only compiled, and the outputs' shapes returned."""
+        compile time counted on `clock`); with execute False, only compiled, and the outputs' shapes
+        returned."""
         start = time.perf_counter()
         executable = devices.compiled(fn, *args, key=key)
-        self.compile_s += time.perf_counter() - start
+        if clock:
+            self.compile_s += time.perf_counter() - start
         if execute:
             with devices.EXCLUSIVE:  # one multi-device program at a time (see `coopjax.devices`)
                 return jax.block_until_ready(executable(*args))
@@ -153,13 +156,13 @@ class Evaluator:
         params = params_for(self.base, self.problem, thetas, draws)
         return thetas.shape[0], len(draws), params
 
-    def _runs(self, params, kind, execute, cotangents=None) -> list:
+    def _runs(self, params, kind, execute, cotangents=None, clock=True) -> list:
         """Every scenario's runs: metrics (and tangents, or pulled-back gradients with `cotangents`)."""
         out = []
         for i, config in enumerate(self.problem.configs):
             fn = _runs(config, kind, self.problem.names, self.checkpoint)
             args = (params,) if kind != "vjp" else (params, cotangents[i])
-            result = self._call(("runs", config, kind, self.problem.names, self.checkpoint), fn, args, execute)
+            result = self._call(("runs", config, kind, self.problem.names, self.checkpoint), fn, args, execute, clock)
             # On the host: the runs' outputs are split over the devices, the algebra runs on one.
             out.append(jax.device_get(result) if execute else result)
         return out
@@ -168,29 +171,48 @@ class Evaluator:
         """Compile for this query's kind and shapes now (not on anyone's clock)."""
         self._evaluate(query, execute=False)
 
+    def prepare(self, queries) -> threading.Thread | None:
+        """Compile for these queries' kinds and shapes in a background thread, while the run goes on
+        (a tuner's later queries, `Tuner.later_queries`). Its compile time counts nowhere: what the
+        run waits for it counts where the run asks for the program. An error is left to that call,
+        which compiles again and meets it."""
+        if not queries:
+            return None
+
+        def compile_all():
+            for query in queries:
+                try:
+                    self._evaluate(query, execute=False, clock=False)
+                except Exception:  # noqa: BLE001 (the run's own call raises it)
+                    return
+
+        thread = threading.Thread(target=compile_all, daemon=True, name="coopjax-prepare")
+        thread.start()
+        return thread
+
     def __call__(self, query: Query) -> Evaluation:
         return self._evaluate(query)
 
-    def _evaluate(self, query: Query, execute: bool = True) -> Evaluation | None:
+    def _evaluate(self, query: Query, execute: bool = True, clock: bool = True) -> Evaluation | None:
         run_kind, kind = self._kinds(query)
         K, M, params = self._params(query)
         bounds = bound_values(self.problem, params)
         scalar = self.scalar if kind in ("forward", "reverse") else None
         program = _algebra(self.problem, kind, scalar, K)
-        algebra = lambda *args: self._call(("algebra", self.problem, kind, scalar, K), program, args, execute)
+        algebra = lambda *args: self._call(("algebra", self.problem, kind, scalar, K), program, args, execute, clock)
         value = gradient = jac = None
         if run_kind is None:
-            real, rest = algebra(self._runs(params, None, execute), bounds)
+            real, rest = algebra(self._runs(params, None, execute, clock=clock), bounds)
         elif kind == "jacobian":
-            metrics, tangents = zip(*self._runs(params, "jvp", execute))
+            metrics, tangents = zip(*self._runs(params, "jvp", execute, clock=clock))
             real, rest, jac = algebra(list(metrics), list(tangents), bounds)
         elif kind == "forward":
-            metrics, tangents = zip(*self._runs(params, "jvp", execute))
+            metrics, tangents = zip(*self._runs(params, "jvp", execute, clock=clock))
             value, gradient, (real, rest) = algebra(list(metrics), list(tangents), bounds, query.weights)
         else:  # the values, their cotangents from the algebra, then the pull-back through the runs
-            runs = self._runs(params, None, execute)
+            runs = self._runs(params, None, execute, clock=clock)
             value, cotangents, (real, rest) = algebra(runs, bounds, query.weights)
-            pulled = self._runs(params, "vjp", execute, cotangents)
+            pulled = self._runs(params, "vjp", execute, cotangents, clock)
             # Per sample (n, K * M), start-major: each candidate's gradient sums over its draws.
             gradient = sum(g for _, g in pulled).reshape(-1, K, M).sum(2).T if execute else None
         if not execute:

@@ -119,6 +119,12 @@ class Tuner(abc.ABC):
         setting that sets it, as its flag and value. By default, nothing worth checking."""
         return 0, ""
 
+    def later_queries(self, state) -> list[Query]:
+        """Queries of kinds or shapes the run will ask after its first ones, as placeholders (only
+        their kind and shapes matter): the driver compiles their programs in the background while
+        the first ones run. By default none."""
+        return []
+
     def expected_evaluations(self, starts: int) -> int | None:
         """Evaluations a run takes, for the progress bar (None: not known ahead)."""
         return None

@@ -325,6 +325,12 @@ class ScreenSLP(Tuner):
             state.es = strategy(state.starts[0], self.sigma0, a, b, seed + 1, self.local * self.radii)
         return state
 
+    def later_queries(self, state):
+        # The local solves' Jacobians: the largest program of the run, compiled while the screen runs.
+        if self.jacobian != "exact":
+            return []
+        return [Query(np.repeat(state.starts[:1], self.local, axis=0), state.draws, "jacobian")]
+
     def _seeded(self, state) -> int:
         """search="cma": the screen's points before CMA-ES takes over, the given starts and Sobol points
         filling their last batch."""
