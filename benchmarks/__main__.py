@@ -392,6 +392,9 @@ def summarise(result) -> dict:
         "coopjax rk4 float32 (all devices) >= 0.35 x strong peer": None
         if ratio["rk4_float32"] is None
         else ratio["rk4_float32"] >= 0.35,
+        "coopjax filippov float64 (all devices) >= 1.0 x strong peer": None
+        if ratio["filippov_float64"] is None
+        else ratio["filippov_float64"] >= 1.0,
         ">= 1e4 x LSODA per set": s["coopjax_over_lsoda_per_set"] >= 1e4,
     }
     if "gradient" in result:
@@ -453,12 +456,24 @@ def main(argv=None) -> int:
             for dtype in ("float64",) if args.quick else ("float32", "float64"):
                 peers[step, dtype] = make_peer(step, dtype)
                 peers[step, dtype](np.ones((46, 2)), T_end=2e-3, block=2)  # compile before anything is timed
+        from benchmarks.strong_peer import vectorisation
+
+        # Whether LLVM vectorised each peer over its samples, from its own machine code.
+        vectorised = {f"{step}_{dtype}": vectorisation(peer) for (step, dtype), peer in peers.items()}
+        for key, counts in vectorised.items():
+            print(
+                f"  strong peer {key.replace('_', ' ')}: {counts['packed_ymm']} ymm-packed, {counts['packed_xmm']} "
+                f"xmm-packed and {counts['scalar']} scalar arithmetic instructions "
+                f"(ymm share {counts['ymm_share']:.2f})"
+            )
 
     result = dict(
         date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         machine=machine(),
         config=dict(scenario="carry", dt=1e-3, T=args.T, switch="hard", quick=args.quick, repeats=args.repeats),
     )
+    if peers:
+        result["peer_vectorisation"] = vectorised
     print("accuracy of the baselines against coopjax (float64) ...", flush=True)
     result["accuracy"] = accuracy(numba_rk4, 1.0 if args.quick else 4.0, peers)
     for name, ok in result["accuracy"]["ok"].items():

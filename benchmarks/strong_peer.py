@@ -22,11 +22,13 @@ Its shape is the one a C kernel of this step would have:
   it for the slab one device holds);
 - float32 and float64 are separate compilations with typed constants, so float32 stays float32.
 
-What numba does not do with it: vectorise the loop over the block. Its small parts vectorise
-alone (the command, the contact, one robot's rates), but LLVM's loop vectorizer gives up on the
-whole step ("loop not vectorized: instruction cannot be vectorized" with
-`llvmlite.binding.set_option("", "-pass-remarks-missed=loop-vectorize")`), so each sample runs in
-scalar code: docs/model.md's speed section gives the figures.
+What LLVM makes of it, counted in its machine code (`vectorisation`; `python -m
+benchmarks.strong_peer --vectorisation`): plain RK4's loop over the block is vectorised, four
+float64 or eight float32 samples per ymm instruction with AVX2 (with the options of
+`vectorising_llvm`). The sliding-mode step's loop is vectorised only with `lanes=True`
+(`make_peer`): numba's `math.sqrt` is a call to libm that LLVM will not vectorise. Vectorised, it
+ran slower than the scalar kernel on this project's machine, so the scalar kernel is the default
+and the benchmark's peer: docs/speed.md gives the figures.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from __future__ import annotations
 import functools
 import math
 import math as _math
+import re
 
 import numpy as np
 
@@ -68,8 +71,15 @@ def vectorising_llvm():
 
 
 @functools.lru_cache(maxsize=None)
-def make_peer(step: str = "filippov", dtype: str = "float64"):
-    """The compiled peer for a step ("filippov" or "rk4") and a dtype; compiles on first call."""
+def make_peer(step: str = "filippov", dtype: str = "float64", lanes: bool = False):
+    """The compiled peer for a step ("filippov" or "rk4") and a dtype; compiles on first call.
+
+    `lanes=True` takes square roots as `x ** 0.5`, which LLVM turns into its own square root
+    instruction: numba calls libm's `sqrt` for `math.sqrt`, a call LLVM cannot vectorise, and that
+    call alone keeps the sliding-mode step's loop over the block scalar. With it, the loop is
+    vectorised (`vectorisation`), compiles three times as long, and ran slower than the scalar
+    kernel on this project's 2-core AVX2 machine (docs/speed.md), so the default is the scalar one.
+    Both give the same numbers: the power is the exact square root."""
     import numba
 
     T = np.dtype(dtype).type
@@ -366,12 +376,25 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         hold = (1 if above else 0) if tau <= tau0 else -1
         return first, (hold if first < INF else -1)
 
+    if lanes:
+
+        @inline
+        def root(x):
+            """sqrt of x >= 0 as a power, which LLVM vectorises (see `make_peer`)."""
+            return x**HALF
+
+    else:
+
+        @inline
+        def root(x):
+            return math.sqrt(x)
+
     @inline
     def impact_time(delta, delta_dot, s, a_r_off, a_o):
         delta_ddot = s * (a_r_off - a_o)
         disc = delta_dot * delta_dot - TWO * delta_ddot * delta
         real = (delta <= Z0) and (disc > Z0)
-        den = delta_dot + math.sqrt(disc if real else ONE)
+        den = delta_dot + root(disc if real else ONE)
         hits = real and (den > Z0)
         return -TWO * delta / den if hits else INF
 
@@ -382,9 +405,9 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         curvature = (se - sn - rate * hs) / (hs * hs)
         disc = rate * rate - T(4.0) * curvature * sn
         real = (sn <= Z0) and (se > Z0) and (disc >= Z0)
-        root = math.sqrt(disc if real else ONE)
-        num = -TWO * sn if rate > Z0 else root - rate
-        den = rate + root if rate > Z0 else TWO * curvature
+        r = root(disc if real else ONE)
+        num = -TWO * sn if rate > Z0 else r - rate
+        den = rate + r if rate > Z0 else TWO * curvature
         ok = real and (den > Z0)
         return min(max(num / den, Z0), h) if ok else h
 
@@ -407,11 +430,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64"):
         """filippov.sliding_exit: (found, time, hold) where lambda* left [0, 1] on a piece slid through."""
         down = free and end < Z0
         up = free and end > ONE
-        if down:
-            return True, min(max(start / (start - end), Z0), ONE) * h, 0
-        if up:
-            return True, min(max((ONE - start) / (end - start), Z0), ONE) * h, 1
-        return False, INF, 0
+        # One return of selects: a tuple returned from branches is a phi of an LLVM struct, which
+        # stops the loop over the block from vectorising ("instruction return type cannot be vectorized").
+        den = (start - end) if down else ((end - start) if up else ONE)
+        share = (start if down else ONE - start) / den
+        return down or up, (min(max(share, Z0), ONE) * h) if (down or up) else INF, 1 if up else 0
 
     @inline
     def evaluate(P, b, y, t, cos, sin, on_L, on_R, off_L, off_R):
@@ -1125,6 +1148,37 @@ def agreement(step: str, params, T_end: float, block: int = BLOCK) -> float:
     return worst
 
 
+# --- what the compiler made of it ---------------------------------------------------------------
+
+_ARITHMETIC = re.compile(r"^\s*v(add|sub|mul|div|sqrt|min|max|cmp\w*|fn?m(?:add|sub)\d+|blendv)([ps])([sd])\s+(.*)$")
+
+
+def vectorisation(metrics) -> dict:
+    """The compiler's own report on a compiled peer (`make_peer`'s result, called once): its block
+    kernel's floating-point arithmetic instructions in the machine code, packed in ymm registers,
+    packed in xmm registers, and scalar, and the ymm share of them. LLVM keeps a scalar copy of every
+    loop it vectorises for the block's remainder, so a vectorised kernel still shows scalar code; a
+    step loop left scalar shows almost nothing in ymm."""
+    cells = dict(zip(metrics.__code__.co_freevars, (c.cell_contents for c in metrics.__closure__)))
+    run = cells["run"]
+    kernel = dict(zip(run.py_func.__code__.co_freevars, (c.cell_contents for c in run.py_func.__closure__)))
+    run_block = kernel["run_block"]
+    counts = {"packed_ymm": 0, "packed_xmm": 0, "scalar": 0}
+    for signature in run_block.signatures:
+        for line in run_block.inspect_asm(signature).splitlines():
+            match = _ARITHMETIC.match(line)
+            if not match:
+                continue
+            if match.group(2) == "s":
+                counts["scalar"] += 1
+            else:
+                counts["packed_ymm" if "%ymm" in match.group(4) else "packed_xmm"] += 1
+    # Loop vectorisation over the block's samples fills ymm registers (4 float64 or 8 float32 lanes
+    # with AVX2); packed xmm pairs are LLVM pairing the two robots' rows within one sample.
+    counts["ymm_share"] = counts["packed_ymm"] / max(1, sum(counts.values()))
+    return counts
+
+
 # --- the FLOP count of the source ---------------------------------------------------------------
 
 
@@ -1167,6 +1221,7 @@ for _name, _fn in (
     ("add", lambda a, b: a + b),
     ("sub", lambda a, b: a - b),
     ("mul", lambda a, b: a * b),
+    ("pow", lambda a, b: a**b),
     ("truediv", lambda a, b: a / b if b else math.copysign(math.inf, a) * math.copysign(1.0, b) if a else math.nan),
 ):
     _binary(_name, _fn)
@@ -1223,18 +1278,37 @@ def count_flops(step: str, T_end: float = 4.0, B: int = 2, seed: int = 0) -> flo
     return _Counted.ops / (B * round(T_end / 1e-3))
 
 
-if __name__ == "__main__":  # python -m benchmarks.strong_peer: the FLOP counts (JSON)
+if __name__ == "__main__":  # python -m benchmarks.strong_peer: the FLOP counts, or the compiler's report (JSON)
+    import argparse
     import json
     import os
     import sys
 
-    import argparse
-
     parser = argparse.ArgumentParser(
-        prog="python -m benchmarks.strong_peer", description="FLOP per sample-step of the strong peer's source, as JSON"
+        prog="python -m benchmarks.strong_peer",
+        description="FLOP per sample-step of the strong peer's source (under NUMBA_DISABLE_JIT=1), or with "
+        "--vectorisation what LLVM made of each compiled peer; as JSON",
     )
     parser.add_argument("--T", type=float, default=4.0, help="horizon of the counted carry run, s (default 4)")
+    parser.add_argument(
+        "--vectorisation",
+        action="store_true",
+        help="compile the peers (both steps and dtypes, and the sliding-mode step with lanes=True; some 20 "
+        "minutes) and count their packed and scalar arithmetic instructions",
+    )
     args = parser.parse_args()
+    if args.vectorisation:
+        if os.environ.get("NUMBA_DISABLE_JIT") == "1":
+            print("--vectorisation compiles the peers: run without NUMBA_DISABLE_JIT=1", file=sys.stderr)
+            sys.exit(2)
+        report = {}
+        for step, lanes in (("filippov", False), ("filippov", True), ("rk4", False)):
+            for dtype in ("float32", "float64"):
+                peer = make_peer(step, dtype, lanes)
+                peer(np.ones((46, 2)), T_end=2e-3, block=2)  # compiles it
+                report[f"{step}{'_lanes' if lanes else ''}_{dtype}"] = vectorisation(peer)
+        print(json.dumps(report))
+        sys.exit(0)
     if os.environ.get("NUMBA_DISABLE_JIT") != "1":
         print("run with NUMBA_DISABLE_JIT=1: the count runs the source as Python", file=sys.stderr)
         sys.exit(2)

@@ -41,7 +41,7 @@ class Analytic:
         pass
 
     def prepare(self, queries):
-        pass
+        self.prepared = list(queries)
 
     def __call__(self, query):
         C, n = query.thetas.shape
@@ -89,6 +89,23 @@ def test_the_local_solve_finds_the_minimax_optimum_where_three_pieces_are_active
     best = result.tuner.candidates(result.state)[0]
     assert np.allclose(best, CB2_AT, atol=1e-4)
     assert cb2(best)[0].max() == pytest.approx(CB2_MIN, abs=1e-6)
+
+
+def test_what_is_compiled_in_the_background_is_the_program_the_local_solves_ask_for():
+    """The driver compiles the tuner's `later_queries` while the screen runs: each must have the kind
+    and shapes (the compiled program's key) of a query the run then asks."""
+    evaluator, asked = Analytic(), []
+    solve(
+        ScreenSLP(screen=6, local=2, steps=3),
+        [[2.0, 2.0], [0.0, -1.0]],
+        evaluator,
+        on_step=lambda s, q, e: asked.append(q),
+    )
+    signature = lambda q: (q.derivative, q.mode, np.shape(q.thetas), np.shape(q.draws))
+    assert evaluator.prepared and asked[0].derivative is None  # the screen comes first
+    later = {signature(q) for q in asked[1:]}
+    assert all(signature(q) in later for q in evaluator.prepared)
+    assert any(q.derivative == "jacobian" for q in evaluator.prepared)
 
 
 def test_the_grip_margin_is_kept_exactly_as_an_independent_solver_keeps_it():
