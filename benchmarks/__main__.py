@@ -462,9 +462,9 @@ def main(argv=None) -> int:
         vectorised = {f"{step}_{dtype}": vectorisation(peer) for (step, dtype), peer in peers.items()}
         for key, counts in vectorised.items():
             print(
-                f"  strong peer {key.replace('_', ' ')}: {counts['packed_ymm']} ymm-packed, {counts['packed_xmm']} "
-                f"xmm-packed and {counts['scalar']} scalar arithmetic instructions "
-                f"(ymm share {counts['ymm_share']:.2f})"
+                f"  strong peer {key.replace('_', ' ')}: arithmetic instructions {counts['packed_zmm']} zmm-packed, "
+                f"{counts['packed_ymm']} ymm-packed, {counts['packed_xmm']} xmm-packed, {counts['scalar']} scalar "
+                f"(ymm or zmm: {counts['wide_share']:.2f})"
             )
 
     result = dict(

@@ -1155,15 +1155,17 @@ _ARITHMETIC = re.compile(r"^\s*v(add|sub|mul|div|sqrt|min|max|cmp\w*|fn?m(?:add|
 
 def vectorisation(metrics) -> dict:
     """The compiler's own report on a compiled peer (`make_peer`'s result, called once): its block
-    kernel's floating-point arithmetic instructions in the machine code, packed in ymm registers,
-    packed in xmm registers, and scalar, and the ymm share of them. LLVM keeps a scalar copy of every
-    loop it vectorises for the block's remainder, so a vectorised kernel still shows scalar code; a
-    step loop left scalar shows almost nothing in ymm."""
+    kernel's floating-point arithmetic instructions in the machine code, by register: packed in xmm
+    (two float64 or four float32), ymm or zmm registers, or scalar; and the share packed in ymm or
+    zmm. LLVM's loop vectoriser, run over a block's samples, fills the widest registers the CPU
+    has (four to sixteen samples an instruction); packed xmm is mostly LLVM pairing the two robots'
+    rows within one sample. LLVM keeps a scalar copy of every loop it vectorises for the block's
+    remainder, so a vectorised kernel still shows scalar code."""
     cells = dict(zip(metrics.__code__.co_freevars, (c.cell_contents for c in metrics.__closure__)))
     run = cells["run"]
     kernel = dict(zip(run.py_func.__code__.co_freevars, (c.cell_contents for c in run.py_func.__closure__)))
     run_block = kernel["run_block"]
-    counts = {"packed_ymm": 0, "packed_xmm": 0, "scalar": 0}
+    counts = {"packed_xmm": 0, "packed_ymm": 0, "packed_zmm": 0, "scalar": 0}
     for signature in run_block.signatures:
         for line in run_block.inspect_asm(signature).splitlines():
             match = _ARITHMETIC.match(line)
@@ -1172,10 +1174,8 @@ def vectorisation(metrics) -> dict:
             if match.group(2) == "s":
                 counts["scalar"] += 1
             else:
-                counts["packed_ymm" if "%ymm" in match.group(4) else "packed_xmm"] += 1
-    # Loop vectorisation over the block's samples fills ymm registers (4 float64 or 8 float32 lanes
-    # with AVX2); packed xmm pairs are LLVM pairing the two robots' rows within one sample.
-    counts["ymm_share"] = counts["packed_ymm"] / max(1, sum(counts.values()))
+                counts[f"packed_{re.search(r'%([xyz])mm', match.group(4)).group(1)}mm"] += 1
+    counts["wide_share"] = (counts["packed_ymm"] + counts["packed_zmm"]) / max(1, sum(counts.values()))
     return counts
 
 
