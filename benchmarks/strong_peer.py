@@ -23,12 +23,11 @@ Its shape is the one a C kernel of this step would have:
 - float32 and float64 are separate compilations with typed constants, so float32 stays float32.
 
 What LLVM makes of it, counted in its machine code (`vectorisation`; `python -m
-benchmarks.strong_peer --vectorisation`): plain RK4's loop over the block is vectorised, four
-float64 or eight float32 samples per ymm instruction with AVX2 (with the options of
-`vectorising_llvm`). The sliding-mode step's loop is vectorised only with `lanes=True`
-(`make_peer`): numba's `math.sqrt` is a call to libm that LLVM will not vectorise. Vectorised, it
-ran slower than the scalar kernel on this project's machine, so the scalar kernel is the default
-and the benchmark's peer: docs/speed.md gives the figures.
+benchmarks.strong_peer --vectorisation`; every `python -m benchmarks` run records it): on an
+AVX-512 CPU both steps' loops over the block are vectorised, eight float64 samples per zmm
+instruction (with the options of `vectorising_llvm`). Where numba's `math.sqrt` is a call to libm,
+LLVM cannot vectorise the sliding-mode step's loop; `lanes=True` (`make_peer`) is the variant for
+such a CPU. docs/speed.md gives the counts and the times.
 """
 
 from __future__ import annotations
@@ -75,11 +74,11 @@ def make_peer(step: str = "filippov", dtype: str = "float64", lanes: bool = Fals
     """The compiled peer for a step ("filippov" or "rk4") and a dtype; compiles on first call.
 
     `lanes=True` takes square roots as `x ** 0.5`, which LLVM turns into its own square root
-    instruction: numba calls libm's `sqrt` for `math.sqrt`, a call LLVM cannot vectorise, and that
-    call alone keeps the sliding-mode step's loop over the block scalar. With it, the loop is
-    vectorised (`vectorisation`), compiles three times as long, and ran slower than the scalar
-    kernel on this project's 2-core AVX2 machine (docs/speed.md), so the default is the scalar one.
-    Both give the same numbers: the power is the exact square root."""
+    instruction, where numba may call libm's `sqrt` for `math.sqrt`: a call LLVM cannot vectorise,
+    which alone keeps the sliding-mode step's loop over the block scalar. On a CPU where numba's
+    `math.sqrt` is vectorised anyway (this project's AVX-512 machine), both give the same machine
+    code by `vectorisation`'s count, and the default is the plain one. Both give the same numbers:
+    the power is the exact square root."""
     import numba
 
     T = np.dtype(dtype).type
@@ -1179,6 +1178,46 @@ def vectorisation(metrics) -> dict:
     return counts
 
 
+def lanes_pair(T_end: float = 4.0, B: int = 4096, repeats: int = 5) -> dict:
+    """The sliding-mode peer in float64, plain and with `lanes=True`: instruction counts, their
+    largest relative disagreement on 64 random sets, and M sample-steps per second timed in turn."""
+    import statistics
+    import time
+
+    import coopjax as cj
+    from benchmarks.implementations import parameter_matrix
+
+    rng = np.random.default_rng(2)
+    check = parameter_matrix(
+        cj.make_params(
+            M_b=np.exp(rng.uniform(np.log(0.5), np.log(5.0), 64)),
+            K_GP=rng.uniform(0.05, 1.5, 64),
+            K_GI=rng.uniform(0.01, 0.8, 64),
+            tau=rng.uniform(0.2, 4.0, 64),
+            G_e=np.exp(rng.uniform(np.log(50.0), np.log(3000.0), 64)),
+        )
+    )
+    rng = np.random.default_rng(0)  # the benchmark's batch
+    P = parameter_matrix(cj.make_params(M_b=rng.uniform(0.5, 5.0, B), K_GP=rng.uniform(0.3, 0.7, B)))
+    peers = {lanes: make_peer("filippov", "float64", lanes) for lanes in (False, True)}
+    report, results, times = {}, {}, {False: [], True: []}
+    for lanes, peer in peers.items():
+        results[lanes] = peer(check, T_end=T_end)  # compiles it
+        report[f"lanes={lanes}"] = vectorisation(peer)
+    a, b = results[False], results[True]
+    err = np.where(np.abs(a - b) <= 1e-9, 0.0, np.abs(a - b) / np.maximum(np.abs(a), 1e-300))
+    report["disagreement"] = float(np.nanmax(err))
+    for _ in range(repeats):
+        for lanes, peer in peers.items():
+            t0 = time.perf_counter()
+            peer(P, T_end=T_end)
+            times[lanes].append(time.perf_counter() - t0)
+    steps = B * int(round(T_end / 1e-3))
+    for lanes in peers:
+        report[f"lanes={lanes}"]["M_steps_per_s"] = steps / statistics.median(times[lanes]) / 1e6
+    return report
+
+
 # --- the FLOP count of the source ---------------------------------------------------------------
 
 
@@ -1296,11 +1335,20 @@ if __name__ == "__main__":  # python -m benchmarks.strong_peer: the FLOP counts,
         help="compile the peers (both steps and dtypes, and the sliding-mode step with lanes=True; some 20 "
         "minutes) and count their packed and scalar arithmetic instructions",
     )
+    parser.add_argument(
+        "--lanes",
+        action="store_true",
+        help="compile the sliding-mode peer in float64 plain and with lanes=True (some 9 minutes), check "
+        "that they agree on 64 random sets, and time them in turn (B = 4096, medians of 5)",
+    )
     args = parser.parse_args()
+    if (args.vectorisation or args.lanes) and os.environ.get("NUMBA_DISABLE_JIT") == "1":
+        print("--vectorisation and --lanes compile the peers: run without NUMBA_DISABLE_JIT=1", file=sys.stderr)
+        sys.exit(2)
+    if args.lanes:
+        print(json.dumps(lanes_pair(T_end=args.T)))
+        sys.exit(0)
     if args.vectorisation:
-        if os.environ.get("NUMBA_DISABLE_JIT") == "1":
-            print("--vectorisation compiles the peers: run without NUMBA_DISABLE_JIT=1", file=sys.stderr)
-            sys.exit(2)
         report = {}
         for step, lanes in (("filippov", False), ("filippov", True), ("rk4", False)):
             for dtype in ("float32", "float64"):
