@@ -41,6 +41,7 @@ _API = frozenset(
         "step",
         "sweep",
         "use_all_cores",
+        "use_cache",
         "vector_field",
     }
 )

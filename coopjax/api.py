@@ -1,6 +1,7 @@
 """Everything `import coopjax` offers, imported here once (coopjax/__init__.py loads it on first use)."""
 
 from coopjax.config import Config
+from coopjax.cache import use_cache
 from coopjax.devices import use_all_cores
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS, Integrator, Observation, Solution, Trajectory, integrate, rk4, step
@@ -47,5 +48,6 @@ __all__ = [
     "step",
     "sweep",
     "use_all_cores",
+    "use_cache",
     "vector_field",
 ]

@@ -73,30 +73,27 @@ def stable_dt(params: Params, config) -> tuple[np.ndarray, np.ndarray]:
     return INTEGRATORS[config.method].stable_dt(eig), growing_mode(eig)
 
 
-def growing_mode(eigenvalues: np.ndarray) -> np.ndarray:
-    """Per sample, the largest growth rate Re lambda (1/s) of the linearised loop, beyond round-off."""
+def growing_mode(eigenvalues):
+    """Per sample, the largest growth rate Re lambda (1/s) of the linearised loop, beyond round-off.
+    NumPy or (traced) JAX eigenvalues."""
+    xp = jnp if isinstance(eigenvalues, jax.Array) else np
     lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
-    scale = np.abs(lam).max(axis=1)
+    scale = xp.abs(lam).max(axis=1)
     growth = lam.real.max(axis=1)
-    return np.where(growth > 1e-9 * scale + 1e-9, growth, 0.0)
+    return xp.where(growth > 1e-9 * scale + 1e-9, growth, 0.0)
 
 
 def beyond_limit(params: Params, config) -> jax.Array:
     """Per sample (traceable: under jit, vmap and differentiation), whether config.dt is beyond the
     integrator's stability limit or the loop itself is unstable. The linearisation is traced (its
-    inputs without derivatives); the eigenvalues and the limit are computed on the host."""
+    inputs without derivatives), and so are the eigenvalues, in float64 whatever the run uses, as
+    `check_step` takes them: no host callback, so the program that contains it can be kept in JAX's
+    persistent compilation cache (a program with a callback never is)."""
     batched, _ = as_batched(jax.tree_util.tree_map(jax.lax.stop_gradient, params))
     J = _jacobians(batched, config.scenario, config.options)
-    method, dt = config.method, config.dt
-
-    def host(J):
-        J = np.asarray(J, np.float64)
-        eig = np.linalg.eigvals(J.reshape((-1,) + J.shape[-3:]))
-        bad = (growing_mode(eig) > 0) | (dt > INTEGRATORS[method].stable_dt(eig))
-        return bad.reshape(J.shape[:-3])
-
-    shape = jax.ShapeDtypeStruct(J.shape[:-3], jnp.bool_)
-    bad = jax.pure_callback(host, shape, J, vmap_method="expand_dims")
+    with jax.enable_x64(True):
+        eig = jnp.linalg.eigvals(J.astype(jnp.float64).reshape((-1,) + J.shape[-3:]))
+        bad = (growing_mode(eig) > 0) | (config.dt > INTEGRATORS[config.method].stable_dt(eig))
     return bad.reshape(params.batch_shape)
 
 

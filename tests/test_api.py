@@ -134,3 +134,29 @@ def test_an_unstable_step_is_marked_not_raised_under_a_trace_and_its_derivative_
     marked = run(jnp.array([0.5, 50.0]), check_dt="mark")
     assert marked.finite.tolist() == [True, False]
     assert np.isnan(float(marked.peak_grip[1])) and np.isfinite(float(marked.peak_grip[0]))
+
+
+def test_the_traced_mark_is_the_concrete_check_and_has_no_host_callback():
+    """Under a trace, `simulate` marks a sample where the concrete check (`check_step`) would refuse
+    it: the same linearisation and eigenvalues, computed inside the program (in float64), on samples
+    from well inside the limit to far beyond it, stable and unstable loops (negative gains). No host
+    callback is left in the program: JAX's persistent cache never keeps a program that has one."""
+    from coopjax import stability
+    from coopjax.config import Config
+
+    rng = np.random.default_rng(3)
+    n = 48
+    params = cj.make_params(
+        K_GP=10 ** rng.uniform(-1, 2.5, n) * rng.choice([1.0, 1.0, 1.0, -1.0], n),
+        G_e=10 ** rng.uniform(0, 3.5, n),
+        M_b=10 ** rng.uniform(-1, 1.5, n),
+        tau=10 ** rng.uniform(-2, 0.5, n),
+    )
+    for scenario, dt in (("carry", 1e-3), ("paper", 4e-3)):
+        config = Config.of(scenario, dt=dt).validate()
+        eig = stability.fastest_modes(params, config)
+        concrete = (stability.growing_mode(eig) > 0) | (dt > cj.INTEGRATORS[config.method].stable_dt(eig))
+        traced = jax.jit(lambda p: stability.beyond_limit(p, config))
+        assert 0 < concrete.sum() < n  # both kinds present
+        np.testing.assert_array_equal(np.asarray(traced(params)), concrete)
+        assert "callback" not in traced.lower(params).as_text()

@@ -5,8 +5,9 @@ import shutil
 import subprocess
 import sys
 
+import coopjax as cj
 from coopjax import cli
-from coopjax.cli import cache
+from coopjax import cache
 
 
 def test_the_folder_follows_xdg_and_the_users_settings(tmp_path):
@@ -114,3 +115,37 @@ def test_a_cache_that_cannot_be_used_is_one_note_at_the_end_and_never_before_an_
     assert cli.main(["simulate", "--T", "0.0513", "--out", "r.csv"]) == 0  # a new T: it compiles
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("coopjax: note: no compile cache"), err
+
+
+def test_a_python_program_keeps_its_jitted_gradient_with_use_cache(tmp_path):
+    """`coopjax.use_cache(folder)` in a script: the first run compiles its `jit(grad(...))` of a run
+    (with the traced stability mark, the default under a trace) into the folder; a second run of the
+    same script loads it and gives the same bits."""
+    script = tmp_path / "script.py"
+    script.write_text(
+        "import sys, jax, coopjax as cj\n"
+        "hits = []\n"
+        "jax.monitoring.register_event_listener(lambda e, **k: hits.append(e) if 'cache_hits' in e else None)\n"
+        "print(cj.use_cache(sys.argv[1]))\n"
+        "loss = lambda k: cj.loss(cj.simulate(cj.make_params(K_GP=k), 'paper', switch='blend', T=0.05).metrics)\n"
+        "print(repr(float(jax.jit(jax.grad(loss))(0.5))), len(hits))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    run = lambda: subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "cache")], env=env, capture_output=True, text=True, check=True
+    ).stdout.split("\n")
+    (sub, first, _), (_, second, _) = run(), run()
+    assert sub == str(tmp_path / "cache" / cache.machine_tag())
+    assert any(p.name.endswith(cache.SUFFIX) for p in (tmp_path / "cache" / cache.machine_tag()).iterdir())
+    (slope, hits), (slope_again, hits_again) = first.split(), second.split()
+    assert slope == slope_again and int(hits) == 0 and int(hits_again) >= 1
+
+
+def test_use_cache_refuses_a_folder_it_cannot_use(tmp_path):
+    import pytest
+
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(cj.InputError, match="cannot keep the compile cache"):
+        cj.use_cache(tmp_path / "a-file")
+    with pytest.raises(cj.InputError, match="a folder's path"):
+        cj.use_cache(3)

@@ -18,7 +18,8 @@ import errno
 import importlib
 import sys
 
-from coopjax.cli import cache, interrupts
+from coopjax import cache
+from coopjax.cli import interrupts
 from coopjax.errors import InputError
 
 EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED = 2, 1, 130

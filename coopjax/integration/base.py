@@ -87,8 +87,9 @@ class Integrator(abc.ABC):
         """|R(z)| of the linear test equation y' = lambda y, z = lambda dt: classical RK4's by default."""
         return rk4_amplification(z)
 
-    def stable_dt(self, eigenvalues: np.ndarray) -> np.ndarray:
-        """Largest stable dt per sample for the linearised loop's eigenvalues (B, ...)."""
+    def stable_dt(self, eigenvalues):
+        """Largest stable dt per sample for the linearised loop's eigenvalues (B, ...): NumPy, or JAX
+        under a trace (`simulate` marks samples beyond it inside the traced program)."""
         return max_stable_dt(eigenvalues, type(self).amplification)
 
     def __repr__(self):
@@ -159,15 +160,15 @@ def stability_region(amplification: Callable):
     return theta, _first_exit(theta, amplification)
 
 
-def max_stable_dt(eigenvalues: np.ndarray, amplification: Callable = rk4_amplification) -> np.ndarray:
+def max_stable_dt(eigenvalues, amplification: Callable = rk4_amplification):
     """Largest dt with every mode inside the stability region, per sample: min over modes of the
-    region's radius along the mode's direction over |lambda| (0 if a mode grows, Re lambda > 0)."""
+    region's radius along the mode's direction over |lambda| (0 if a mode grows, Re lambda > 0).
+    NumPy or (traced) JAX eigenvalues; the region itself is a NumPy table."""
+    xp = jnp if isinstance(eigenvalues, jax.Array) else np
     lam = eigenvalues.reshape(eigenvalues.shape[0], -1)
-    size = np.abs(lam)
-    theta = np.mod(np.angle(lam), 2 * np.pi)
-    radius = np.interp(theta, *stability_region(amplification), left=0.0, right=0.0)
+    size = xp.abs(lam)
+    theta = xp.mod(xp.angle(lam), 2 * np.pi)
+    radius = xp.interp(theta, *stability_region(amplification), left=0.0, right=0.0)
     # Modes at 0 (the free-floating bases, conserved integrals) limit nothing.
-    tiny = size <= 1e-9 * np.maximum(size.max(axis=1, keepdims=True), 1e-300)
-    with np.errstate(divide="ignore"):
-        limit = np.where(tiny, np.inf, radius / np.where(tiny, 1.0, size))
-    return limit.min(axis=1)
+    tiny = size <= 1e-9 * xp.maximum(size.max(axis=1, keepdims=True), 1e-300)
+    return xp.where(tiny, xp.inf, radius / xp.where(tiny, 1.0, size)).min(axis=1)

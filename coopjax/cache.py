@@ -1,8 +1,9 @@
-"""The command line's persistent compilation cache (JAX's own, on disk), which is only ever an
-accelerator.
+"""The persistent compilation cache (JAX's own, on disk), which is only ever an accelerator: the
+command line's, and a Python program's through `coopjax.use_cache()`.
 
 A run of `coopjax tune` spends about 20 s compiling its programs, the same ones every time for the
-same options. With JAX's persistent cache a later run loads them instead. The folder is
+same options, and a script's `jax.jit(jax.grad(...))` of a run 20 s or more. With JAX's persistent
+cache a later run loads them instead. The folder is
 `$XDG_CACHE_HOME/coopjax/xla` (`~/.cache/coopjax/xla`); `COOPJAX_CACHE=FOLDER` moves it (a leading
 `~` is the home folder) and `COOPJAX_CACHE=` (empty) turns it off. A user who sets JAX's own
 `JAX_COMPILATION_CACHE_DIR` keeps it, and its behaviour. JAX keys each entry on the program, the
@@ -86,16 +87,19 @@ def machine_tag() -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def enable(environ=os.environ) -> str | None:
+def enable(environ=os.environ, quiet: bool = True) -> str | None:
     """Point JAX's persistent cache at our folder's subfolder for this machine; returns it (None: not
     ours, or off).
 
     A folder the user named that cannot be used is bad input. The default folder failing (a
     read-only home) costs only speed: one line on stderr, and the run goes on without a cache.
+    `quiet` (the command line) gathers what JAX would warn about the cache into one note for the
+    run's end (`note`); otherwise JAX's warnings and ours reach the program as warnings.
     """
     shared, chosen = location(environ)
     if shared is None:
         return None
+    say = _notes.append if quiet else (lambda text: warnings.warn(f"coopjax: {text}", RuntimeWarning, stacklevel=3))
     try:
         if os.path.exists(shared) and not os.path.isdir(shared):
             raise NotADirectoryError(20, "a file, not a folder")
@@ -109,18 +113,18 @@ def enable(environ=os.environ) -> str | None:
                 f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
                 f"writable folder, or set {ENV}= (empty) to run without it"
             ) from None
-        _notes.append(f"no compile cache ({shared}: {error.strerror}); every run compiles afresh")
-        _listen()
+        say(f"no compile cache ({shared}: {error.strerror}); every run compiles afresh")
+        _listen(quiet)
         return None
     try:
         verify(folder)
     except OSError as error:  # entries it could neither check nor remove: the run goes without
-        _notes.append(f"the compile cache in {folder} was not used ({error.strerror})")
-        _listen()
+        say(f"the compile cache in {folder} was not used ({error.strerror})")
+        _listen(quiet)
         return None
     import jax
 
-    _listen()
+    _listen(quiet)
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
@@ -208,12 +212,13 @@ def _record_quietly(folder: str) -> None:
         pass
 
 
-def _listen() -> None:
+def _listen(quiet: bool = True) -> None:
     """Turn JAX's cache warnings into one note, and notice whether the run compiled anything (once
-    per process: a test, or a program calling `main` again, must not stack the hooks)."""
+    per process: a test, or a program calling `main` again, must not stack the hooks). Not quiet (a
+    Python program): nothing is hooked, and JAX's warnings reach the program."""
     import jax
 
-    if _listening[0]:
+    if _listening[0] or not quiet:
         return
     _listening[0] = True
     shown = warnings.showwarning
@@ -240,6 +245,27 @@ def _listen() -> None:
 
     jax.monitoring.register_event_duration_secs_listener(compiled)
     jax.monitoring.register_event_listener(compiled)
+
+
+def use_cache(folder: str | None = None) -> str | None:
+    """Keep the programs this process compiles on disk, so that a later run of the same program
+    loads them instead of compiling again (a jitted gradient of a run: 20 s or more the first time).
+
+    Call it first, before anything is compiled, as `use_all_cores`. The folder is the command
+    line's (`~/.cache/coopjax/xla`, or `$COOPJAX_CACHE`; an empty `COOPJAX_CACHE` turns it off), or
+    `folder`; a subfolder per machine and jax build. An entry whose content is not what this project
+    recorded for it is deleted and compiled afresh, never loaded. JAX keys each entry on the
+    program, so a changed model or jax compiles afresh. A user's own `JAX_COMPILATION_CACHE_DIR`
+    wins when no folder is given. Returns the subfolder in use, or None (no cache of ours).
+
+    Raises InputError if `folder` (or `$COOPJAX_CACHE`) cannot hold the cache; a default folder that
+    cannot (a read-only home) is a warning, and the program runs without one.
+    """
+    if folder is not None:
+        if not isinstance(folder, (str, os.PathLike)) or not str(folder):
+            raise InputError(f"folder is {folder!r}: a folder's path, or None for the default", "folder")
+        return enable({ENV: os.fspath(folder)}, quiet=False)
+    return enable(os.environ, quiet=False)
 
 
 def note() -> str | None:
