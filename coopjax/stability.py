@@ -2,7 +2,7 @@
 
 The loop is linearised (`jax.jacfwd` of the vector field, bilateral contact) at the two operating
 points every gripping run visits: at rest before contact (switch off, gamma = 1) and at switch-on
-(F = F_lim on both grippers, w = 1). RK4 is stable for a mode lambda when |R(lambda dt)| <= 1 with
+(F = F_lim on both grippers, just above it: w = 1). RK4 is stable for a mode lambda when |R(lambda dt)| <= 1 with
 R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24.
 
 The sliding-mode integrator evaluates exactly these two fields (w = 0, and w = 1 with the clamp,
@@ -28,6 +28,7 @@ from coopjax.integration import INTEGRATORS, max_stable_dt, rk4_amplification
 from coopjax.params import Params, as_batched, is_traced
 
 MIN_PRACTICAL_DT = 1e-9  # s: a loop that needs a finer step than this has a parameter wrong
+ULPS_ABOVE_F_LIM = 64  # the switch-on operating point's force, in units of round-off above F_lim
 
 
 def _jacobians(params: Params, scenario_name: str, options) -> jax.Array:
@@ -42,7 +43,12 @@ def _jacobians(params: Params, scenario_name: str, options) -> jax.Array:
 
     def per_sample(p):
         p = jax.tree_util.tree_map(lambda x: x[..., None], p)
-        return jnp.stack([jacobian(p, jnp.zeros_like(p.F_lim)), jacobian(p, p.F_lim)])
+        # Switch-on a few units of round-off above F_lim, on the switch-on field's side of the kink
+        # (w = 1, the clamp max(F, F_lim) passing F through), as `analysis.linearize(..., "limit")`
+        # takes it. At F_lim itself, the round-off of K_g (F_lim / K_g) put each sample on either
+        # side, or on it: the limit moved up to 20x between float32 and float64 near Table 1.
+        above = p.F_lim + ULPS_ABOVE_F_LIM * jnp.finfo(p.F_lim.dtype).eps * jnp.abs(p.F_lim)
+        return jnp.stack([jacobian(p, jnp.zeros_like(p.F_lim)), jacobian(p, above)])
 
     in_axes = jax.tree_util.tree_map(lambda x: x.ndim - 1, params)
     return jax.vmap(per_sample, in_axes=(in_axes,))(params)

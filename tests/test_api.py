@@ -160,3 +160,26 @@ def test_the_traced_mark_is_the_concrete_check_and_has_no_host_callback():
         assert 0 < concrete.sum() < n  # both kinds present
         np.testing.assert_array_equal(np.asarray(traced(params)), concrete)
         assert "callback" not in traced.lower(params).as_text()
+
+
+def test_the_switch_on_limit_does_not_hang_on_round_off():
+    """The check linearises the loop at switch-on just above F_lim, on the switch-on field's side of
+    the kink. On sets near Table 1 the stable step is then the same from float32 parameters (what a
+    traced float32 run marks with) as from float64 ones (what `check_step` refuses with), to the
+    1e-3 that float32's operating point (64 of its units of round-off above F_lim) moves the fast
+    mode; taken at F_lim itself, round-off put each sample on either side, and the two differed by
+    up to 20x on one set in ten."""
+    from coopjax import stability
+    from coopjax.config import Config
+    from coopjax.params import as_batched
+
+    rng = np.random.default_rng(1)
+    n, table1 = 256, cj.make_params()
+    names = ("K_GP", "K_GI", "G_e", "tau", "M_b", "K_g", "F_lim")
+    params = cj.make_params(**{k: float(getattr(table1, k).ravel()[0]) * 3 ** rng.uniform(-1, 1, n) for k in names})
+    config = Config.of("carry", dtype="float32").validate()
+    limit64, _ = stability.stable_dt(params, config)
+    J = jax.jit(lambda p: stability._jacobians(as_batched(p)[0], config.scenario, config.options))(config.cast(params))
+    assert J.dtype == jnp.float32
+    limit32 = cj.INTEGRATORS["filippov"].stable_dt(np.linalg.eigvals(np.asarray(J, np.float64)))
+    np.testing.assert_allclose(limit32, limit64, rtol=1e-3)
