@@ -87,14 +87,15 @@ def machine_tag() -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def enable(environ=os.environ, quiet: bool = True) -> str | None:
+def enable(environ=os.environ, quiet: bool = True, argument: bool = False) -> str | None:
     """Point JAX's persistent cache at our folder's subfolder for this machine; returns it (None: not
     ours, or off).
 
     A folder the user named that cannot be used is bad input. The default folder failing (a
     read-only home) costs only speed: one line on stderr, and the run goes on without a cache.
     `quiet` (the command line) gathers what JAX would warn about the cache into one note for the
-    run's end (`note`); otherwise JAX's warnings and ours reach the program as warnings.
+    run's end (`note`); otherwise JAX's warnings and ours reach the program as warnings. `argument`:
+    the folder came as `use_cache`'s argument, and an error names it so.
     """
     shared, chosen = location(environ)
     if shared is None:
@@ -109,6 +110,12 @@ def enable(environ=os.environ, quiet: bool = True) -> str | None:
             raise PermissionError(13, "not writable")
     except OSError as error:
         if chosen:
+            if argument:
+                raise InputError(
+                    f"use_cache({shared!r}): cannot keep the compile cache there ({error.strerror}); "
+                    "name a writable folder",
+                    "folder",
+                ) from None
             raise InputError(
                 f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
                 f"writable folder, or set {ENV}= (empty) to run without it"
@@ -264,7 +271,7 @@ def use_cache(folder: str | None = None) -> str | None:
     if folder is not None:
         if not isinstance(folder, (str, os.PathLike)) or not str(folder):
             raise InputError(f"folder is {folder!r}: a folder's path, or None for the default", "folder")
-        return enable({ENV: os.fspath(folder)}, quiet=False)
+        return enable({ENV: os.fspath(folder)}, quiet=False, argument=True)
     return enable(os.environ, quiet=False)
 
 
