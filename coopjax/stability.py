@@ -2,8 +2,8 @@
 
 The loop is linearised (`jax.jacfwd` of the vector field, bilateral contact) at the two operating
 points every gripping run visits: at rest before contact (switch off, gamma = 1) and at switch-on
-(F = F_lim on both grippers, just above it: w = 1). RK4 is stable for a mode lambda when |R(lambda dt)| <= 1 with
-R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24.
+(F = F_lim on both grippers, just above it: w = 1). RK4 is stable for a mode lambda when
+|R(lambda dt)| <= 1 with R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24.
 
 The sliding-mode integrator evaluates exactly these two fields (w = 0, and w = 1 with the clamp,
 which is the hard field for F >= F_lim) and runs RK4 stages over substeps no longer than dt, so the
