@@ -110,28 +110,24 @@ def enable(environ=os.environ, quiet: bool = True, argument: bool = False) -> st
             raise PermissionError(13, "not writable")
     except OSError as error:
         if chosen:
-            if argument:
-                raise InputError(
-                    f"use_cache({shared!r}): cannot keep the compile cache there ({error.strerror}); "
-                    "name a writable folder",
-                    "folder",
-                ) from None
+            origin = f"use_cache({shared!r})" if argument else f"{ENV}={shared}"
+            off = "" if argument else f", or set {ENV}= (empty) to run without it"
             raise InputError(
-                f"{ENV}={shared}: cannot keep the compile cache there ({error.strerror}); name a "
-                f"writable folder, or set {ENV}= (empty) to run without it"
+                f"{origin}: cannot keep the compile cache there ({error.strerror}); name a writable folder{off}"
             ) from None
         say(f"no compile cache ({shared}: {error.strerror}); every run compiles afresh")
-        _listen(quiet)
+        folder = None
+    if quiet:  # once the folder is settled: a refused one installs no hooks
+        _listen()
+    if folder is None:
         return None
     try:
         verify(folder)
     except OSError as error:  # entries it could neither check nor remove: the run goes without
         say(f"the compile cache in {folder} was not used ({error.strerror})")
-        _listen(quiet)
         return None
     import jax
 
-    _listen(quiet)
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
@@ -219,13 +215,12 @@ def _record_quietly(folder: str) -> None:
         pass
 
 
-def _listen(quiet: bool = True) -> None:
+def _listen() -> None:
     """Turn JAX's cache warnings into one note, and notice whether the run compiled anything (once
-    per process: a test, or a program calling `main` again, must not stack the hooks). Not quiet (a
-    Python program): nothing is hooked, and JAX's warnings reach the program."""
+    per process: a test, or a program calling `main` again, must not stack the hooks)."""
     import jax
 
-    if _listening[0] or not quiet:
+    if _listening[0]:
         return
     _listening[0] = True
     shown = warnings.showwarning
