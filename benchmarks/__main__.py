@@ -539,7 +539,8 @@ def report(result):
         print(
             f"\nfour-gain gradient / forward (B = {g['B']}, T = {g['T']:g} s): forward mode "
             f"{g['jacfwd_over_forward']:.2f}x, "
-            f"reverse mode {g['grad_over_forward']:.2f}x"
+            f"reverse mode {g['grad_over_forward']:.2f}x "
+            f"(through the loop: {g.get('grad_loop_over_forward', float('nan')):.2f}x)"
         )
     for r in result.get("memory", []):
         run = f"{r['run_s']:.2f} s" if r["run_s"] else "not run"

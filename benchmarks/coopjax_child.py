@@ -87,7 +87,8 @@ def throughput(Bs, dtypes, devices, repeats, T):
 
 
 def gradient_cost(B, repeats, T):
-    """Time of the four-gain gradient over one forward run (smooth switch, float64)."""
+    """Time of the four-gain derivatives over one forward run (smooth switch, float64): forward mode,
+    reverse mode with the default adjoint, and reverse mode through the loop."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -95,17 +96,23 @@ def gradient_cost(B, repeats, T):
     import coopjax as cj
     from coopjax.simulation import metrics_of
 
-    run = metrics_of(cj.Config("carry", switch="smooth", dt=1e-3, T=T))
+    config = cj.Config("carry", switch="smooth", dt=1e-3, T=T)
     masses = jnp.asarray(np.geomspace(0.5, 5.0, B))
     names = ("K_GP", "K_GI", "tau", "G_e")
 
-    def loss(theta):
+    def loss(theta, adjoint="auto"):
         gains = {n: jnp.broadcast_to(jnp.exp(theta[i]), (B,)) for i, n in enumerate(names)}
-        return cj.loss(run(cj.make_params(M_b=masses, **gains))).mean()
+        return cj.loss(metrics_of(config, adjoint=adjoint)(cj.make_params(M_b=masses, **gains))).mean()
 
     theta = jnp.log(jnp.array([0.5, 0.1, 1.25, 600.0]))
     out = {}
-    for name, fn in (("forward", loss), ("jacfwd", jax.jacfwd(loss)), ("grad", jax.grad(loss))):
+    programs = (
+        ("forward", loss),
+        ("jacfwd", jax.jacfwd(loss)),
+        ("grad", jax.grad(loss)),  # pulled back through the forward-mode Jacobian (8 components)
+        ("grad_loop", jax.grad(lambda th: loss(th, "reverse"))),  # transposed through the time loop
+    )
+    for name, fn in programs:
         compiled, compile_s = compile_timed(jax.jit(fn), theta)
         jax.block_until_ready(compiled(theta))
         out[name] = dict(run_s=timed(compiled, theta, repeats=repeats), compile_s=compile_s)
@@ -117,11 +124,13 @@ def gradient_cost(B, repeats, T):
         **out,
         jacfwd_over_forward=out["jacfwd"]["run_s"] / out["forward"]["run_s"],
         grad_over_forward=out["grad"]["run_s"] / out["forward"]["run_s"],
+        grad_loop_over_forward=out["grad_loop"]["run_s"] / out["forward"]["run_s"],
     )
 
 
 def memory(B, horizons, repeats):
-    """Reverse-mode temporary memory (XLA's analysis of the compiled gradient) and run time."""
+    """Reverse-mode temporary memory (XLA's analysis of the compiled gradient) and run time, with
+    the gradient transposed through the time loop (`adjoint="reverse"`), whose memory `checkpoint` sets."""
     import jax
     import jax.numpy as jnp
 
@@ -131,7 +140,7 @@ def memory(B, horizons, repeats):
     rows = []
     for checkpoint in (False, True, "nested"):
         for T in horizons:
-            run = metrics_of(cj.Config("carry", switch="smooth", dt=1e-3, T=T), checkpoint)
+            run = metrics_of(cj.Config("carry", switch="smooth", dt=1e-3, T=T), checkpoint, "reverse")
             loss = lambda k: cj.loss(run(cj.make_params(K_GP=k, M_b=jnp.linspace(0.5, 5.0, B)))).mean()
             compiled, compile_s = compile_timed(jax.jit(jax.grad(loss)), 0.5)
             temp = compiled.memory_analysis().temp_size_in_bytes

@@ -44,7 +44,7 @@ def main(argv=None):
     import coopjax as cj
     from tuning import constrained
     from tuning.evaluate import Evaluator
-    from tuning.problem import Problem, expand_params, grid, starting_points
+    from tuning.problem import Problem, expand_params, starting_points
     from tuning.tuners import Query
     from tuning.tuners.adam import AdamAL
 
@@ -53,10 +53,10 @@ def main(argv=None):
     base = cj.make_params()
     first = {n: float(np.asarray(base.get(n)).ravel()[0]) for n in names}
     thetas = starting_points(problem, base, first, args.lanes, 1.0, 0)
-    masses = grid(problem.training_range, problem.n_masses)
+    masses = problem.fixed_training_draws()
     n, K = len(names), args.lanes
     shifts = np.concatenate([np.zeros((1, n)), 1e-3 * np.eye(n), -1e-3 * np.eye(n)])
-    mult = constrained.init((K, problem.n_masses), 10.0)
+    mult = constrained.init((K, problem.n_constraints(len(masses))), 10.0)
     gradient = Query(thetas, masses, "gradient", "reverse", mult)
     queries = {
         "values": (Query(thetas, masses), True),

@@ -16,7 +16,7 @@ import numpy as np
 from coopjax import devices, objectives, scenarios, stability
 from coopjax.config import Config, check_every, record_size
 from coopjax.errors import InputError
-from coopjax.integration import Solution, Trajectory, batched_leaves, integrate
+from coopjax.integration import ADJOINTS, Solution, Trajectory, batched_leaves, differentiate, integrate
 from coopjax.objectives import mark_unusable
 from coopjax.params import Params, as_batched, is_traced
 
@@ -28,12 +28,16 @@ class Run(NamedTuple):
     every: int | None = None
     checkpoint: bool | str = True
     unroll: int = 1
+    adjoint: str = "auto"
 
     def metric_set(self) -> objectives.MetricSet:
         c = self.config
         return objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps)
 
     def __call__(self, params: Params) -> Solution:
+        return differentiate(self._integrate, params, batched_leaves, self.adjoint)
+
+    def _integrate(self, params: Params) -> Solution:
         return integrate(
             params, self.config, self.metric_set(), every=self.every, checkpoint=self.checkpoint, unroll=self.unroll
         )
@@ -44,13 +48,14 @@ class MetricsOf(NamedTuple):
 
     config: Config
     checkpoint: bool | str = True
+    adjoint: str = "auto"
 
     def __call__(self, params: Params):
-        return Run(self.config, checkpoint=self.checkpoint)(params).metrics
+        return Run(self.config, checkpoint=self.checkpoint, adjoint=self.adjoint)(params).metrics
 
 
-def metrics_of(config: Config, checkpoint: bool | str = True) -> MetricsOf:
-    return MetricsOf(config, checkpoint)
+def metrics_of(config: Config, checkpoint: bool | str = True, adjoint: str = "auto") -> MetricsOf:
+    return MetricsOf(config, checkpoint, adjoint)
 
 
 def _differentiated(params: Params) -> bool:
@@ -72,6 +77,7 @@ def simulate(
     *,
     every: int | None = None,
     checkpoint: bool | str = True,
+    adjoint: str = "auto",
     unroll: int = 1,
     check_dt: bool | str = True,
     **settings,
@@ -82,9 +88,16 @@ def simulate(
       params: from `make_params`; unbatched or with batch shape (B,).
       config: a `Config`, or a scenario name ("paper", "carry", or any registered one).
       every: record the state and signals every this many steps; None keeps only metrics.
-      checkpoint: under reverse-mode differentiation, True rematerialises each step; "nested" also
-        checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n)); "segment" checkpoints the
-        blocks only and stores the steps inside one; False stores everything.
+      adjoint: how reverse mode (`grad`, `vjp`) differentiates the run. "forward" pulls back through
+        the Jacobian along every differentiated parameter component, computed in forward mode (one
+        tangent each): half the program of reverse mode through the loop, and faster for a few
+        parameters. "reverse" transposes the time loop (memory as `checkpoint` says). "auto" (the
+        default) is "forward" for at most 8 differentiated components and "reverse" above.
+        Forward mode (`jvp`, `jacfwd`) gives the same derivatives under all three.
+      checkpoint: under reverse-mode differentiation through the loop, True rematerialises each
+        step; "nested" also checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n));
+        "segment" checkpoints the blocks only and stores the steps inside one; False stores
+        everything.
       check_dt: True refuses (InputError) a step beyond the stability limit of the linearised loop,
         or an unstable loop; under a trace (jit, grad, vmap), where nothing can be refused, and with
         "mark", such a sample is marked instead: NaN metrics with NaN derivatives, `finite` False,
@@ -100,6 +113,8 @@ def simulate(
     check_every(config, every)
     if checkpoint not in (True, False, "nested", "segment"):
         raise InputError(f"checkpoint is {checkpoint!r}: choose True, False, 'nested' or 'segment'", "checkpoint")
+    if adjoint not in ADJOINTS:
+        raise InputError(f"adjoint is {adjoint!r}: choose {', '.join(map(repr, ADJOINTS))}", "adjoint")
     if isinstance(unroll, bool) or not isinstance(unroll, (int, np.integer)) or unroll < 1:
         raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
     params = config.cast(params)
@@ -126,7 +141,7 @@ def simulate(
                 "(a larger every) or run a shorter T",
                 "every",
             )
-    solution = devices.run(Run(config, every, checkpoint, unroll), batched, batched=batched_leaves)
+    solution = devices.run(Run(config, every, checkpoint, unroll, adjoint), batched, batched=batched_leaves)
     if mark:
         # No exception under a trace: a sample whose step is beyond its stability limit is marked as a
         # diverged one is (NaN metrics, NaN derivatives, finite False), never a number to trust.

@@ -17,29 +17,30 @@ HARD_POINT = dict(K_GP=0.3, K_GI=0.2, tau=2.0, G_e=900.0)  # slides, loses some 
 HARD_MASS = 3.0  # kg
 
 
-def hard_terms(theta, dt, M_b=HARD_MASS, checkpoint=True):
+def hard_terms(theta, dt, M_b=HARD_MASS, checkpoint=True, adjoint="reverse"):
     params = cj.make_params(**dict(zip(GAINS, theta)), M_b=M_b)
-    m = cj.simulate(params, "carry", dt=dt, check_dt=False, checkpoint=checkpoint).metrics
+    m = cj.simulate(params, "carry", dt=dt, check_dt=False, checkpoint=checkpoint, adjoint=adjoint).metrics
     return jnp.stack([getattr(m, k) for k in TERMS], axis=0)
 
 
 @pytest.mark.parametrize(
-    "dt, modes, checkpoint",
+    "dt, modes, checkpoint, adjoint",
     [
-        pytest.param(1e-3, ("forward", "reverse"), True, marks=pytest.mark.slow),
-        pytest.param(2e-3, ("forward", "reverse"), "nested", marks=pytest.mark.slow),
+        pytest.param(1e-3, ("forward", "reverse"), True, "reverse", marks=pytest.mark.slow),
+        pytest.param(2e-3, ("forward", "reverse"), "nested", "reverse", marks=pytest.mark.slow),
+        pytest.param(1e-3, ("forward", "reverse"), True, "forward", marks=pytest.mark.slow),
         # Reverse mode of the hard model in CI: tests/test_transforms.py (grad of vmap against vmap
-        # of the derivative) and the docs' optax script (tests/test_examples.py).
-        pytest.param(2e-3, ("reverse",), True, marks=pytest.mark.slow),
+        # of the derivative), tests/test_adjoint.py and the docs' optax script (tests/test_examples.py).
+        pytest.param(2e-3, ("reverse",), True, "reverse", marks=pytest.mark.slow),
     ],
 )
-def test_hard_model_gradients_match_finite_differences_in_both_modes(dt, modes, checkpoint):
+def test_hard_model_gradients_match_finite_differences_in_both_modes(dt, modes, checkpoint, adjoint):
     """d(slip, crush, lag, impact)/d(K_GP, K_GI, tau, G_e) of the hard model, filippov, against
     central differences of the same grid: AD differentiates the step it runs.
 
-    CI runs reverse mode with per-step checkpointing at the training step (the tuner's mode above 4
-    parameters; forward mode is checked through the tuner's objective in test_tuning.py). Both modes
-    at the default step, and nested (sqrt n) checkpointing, run under `-m slow`. Whether these
+    Reverse mode runs transposed through the time loop (`adjoint="reverse"`, with per-step or
+    nested checkpointing) and pulled back through the forward-mode Jacobian (`adjoint="forward"`).
+    These run under `-m slow`. Whether these
     derivatives are the dt -> 0 limit's is test_derivatives.py's question."""
     theta = np.array([HARD_POINT[g] for g in GAINS])
     # Central differences, all eight perturbed runs in one batch. A relative step of 1e-6 stays
@@ -62,7 +63,7 @@ def test_hard_model_gradients_match_finite_differences_in_both_modes(dt, modes, 
         # One vector-Jacobian product with random weights on the four terms: every entry of the
         # Jacobian enters it, and one backward pass compiles far faster than jacrev's four.
         weights = np.random.default_rng(0).uniform(0.5, 1.5, len(TERMS)) / np.abs(fd).max(axis=1)
-        loss = lambda th: jnp.dot(jnp.asarray(weights), hard_terms(th, dt, HARD_MASS, checkpoint))
+        loss = lambda th: jnp.dot(jnp.asarray(weights), hard_terms(th, dt, HARD_MASS, checkpoint, adjoint))
         reverse = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(theta)))
         fd_weighted = weights @ fd
         np.testing.assert_allclose(reverse, fd_weighted, rtol=1e-4, atol=1e-6 * np.abs(fd_weighted).max())
@@ -94,7 +95,7 @@ def test_block_checkpointing_keeps_the_gradient_and_grows_memory_sub_linearly():
     from coopjax.simulation import Run
 
     def compiled(checkpoint, T):
-        run = Run(cj.Config("carry", switch="smooth", dt=1e-3, T=T), checkpoint=checkpoint)
+        run = Run(cj.Config("carry", switch="smooth", dt=1e-3, T=T), checkpoint=checkpoint, adjoint="reverse")
         f = lambda k: cj.loss(run(cj.make_params(K_GP=k, M_b=jnp.ones(2))).metrics).mean()
         return jax.jit(jax.grad(f)).lower(0.5).compile()
 

@@ -323,6 +323,7 @@ API_CASES = [
     ("switch-type", lambda: cj.simulate(cj.make_params(), switch=1), "switch must be a name"),
     ("dtype", lambda: cj.simulate(cj.make_params(), dtype="int8"), "choose float32 or float64"),
     ("checkpoint", lambda: cj.simulate(cj.make_params(), checkpoint="yes"), "checkpoint is 'yes'"),
+    ("adjoint", lambda: cj.simulate(cj.make_params(), adjoint="backward"), "adjoint is 'backward'"),
     ("step-too-large", lambda: cj.simulate(cj.make_params(), dt=0.01), "too large for filippov"),
     ("step-beyond-limit", lambda: cj.simulate(cj.make_params(K_GP=100.0), dt=1e-3), "stable only for dt <="),
     ("unstable", lambda: cj.simulate(cj.make_params(K_GP=-5.0), "paper"), "make the loop unstable"),
