@@ -13,6 +13,11 @@ runs what forward mode does, once per component.
 Samples are independent (no sample's answer depends on another's parameters), so one tangent per
 component, the same for every sample of the batch, gives every sample's Jacobian at once.
 
+One difference from the loop's transpose: a loss that takes in an output whose value is NaN but
+does not move with the parameters (a metric whose window the run never reached) has a NaN value
+and, through the Jacobian, a NaN derivative (0 times NaN); the transpose skips that output and
+gives a number.
+
 Under forward mode itself (`jax.jvp`, `jax.jacfwd`) the rule is the plain tangent: one direction,
 whatever the number of components. Under reverse mode, `"auto"` takes the forward Jacobian when at
 most `MAX_FORWARD` components are differentiated (its run time grows with their number) and
