@@ -5,7 +5,8 @@ per sample and the horizon thousands of steps, so reverse mode through the time 
 three times (the pass, the step recomputed from its checkpoint, and its transpose) and compiles a
 program twice the size of forward mode's. With `"forward"`, a run is a `jax.custom_jvp` whose rule
 computes the Jacobian of every output along each differentiated parameter component by forward
-mode (one tangent per component, all in one pass), and returns the tangent as that Jacobian times
+mode (one tangent per component: copies of a small batch side by side, or one vmapped pass over
+a large one; `COPIES_UP_TO`), and returns the tangent as that Jacobian times
 the input's tangent. That product is linear in the tangent and cheap to transpose, so `jax.grad`
 and `jax.vjp` pull back through it and never transpose the time loop: reverse mode compiles and
 runs what forward mode does, once per component.
