@@ -93,7 +93,9 @@ def simulate(
         tangent each): half the program of reverse mode through the loop, and faster for a few
         parameters. "reverse" transposes the time loop (memory as `checkpoint` says). "auto" (the
         default) is "forward" for at most 8 differentiated components and "reverse" above.
-        Forward mode (`jvp`, `jacfwd`) gives the same derivatives under all three.
+        Forward mode (`jvp`, `jacfwd`) gives the same derivatives under all three. Through the
+        Jacobian, a loss that takes in a NaN metric (one whose window a short run never reaches)
+        has a NaN derivative as well as a NaN value.
       checkpoint: under reverse-mode differentiation through the loop, True rematerialises each
         step; "nested" also checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n));
         "segment" checkpoints the blocks only and stores the steps inside one; False stores
