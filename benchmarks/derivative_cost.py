@@ -42,7 +42,6 @@ def main(argv=None):
     import numpy as np
 
     import coopjax as cj
-    from coopjax import devices
     from tuning import constrained
     from tuning.evaluate import Evaluator
     from tuning.problem import Problem, expand_params, starting_points
@@ -73,12 +72,11 @@ def main(argv=None):
     rows = {}
     for label, (query, checkpoint) in queries.items():
         evaluator = Evaluator(problem, base, AdamAL.scalar, checkpoint)
-        before = set(devices._EXECUTABLES)
         start = time.perf_counter()
         evaluator.warm_up(query)
         compile_s = time.perf_counter() - start
         # The run programs this query compiled (the problem's algebra beside them is small).
-        runs = [devices._EXECUTABLES[k].result() for k in set(devices._EXECUTABLES) - before if k[0][0] == "runs"]
+        runs = [program for key, program in evaluator.programs.items() if key[0] == "runs"]
         memory = max((p.memory_analysis() for p in runs), key=lambda m: m.temp_size_in_bytes, default=None)
         times = []
         for _ in range(args.repeats):

@@ -127,13 +127,14 @@ class Evaluator:
         self.problem, self.base, self.scalar, self.checkpoint = problem, problem.base(base), scalar, checkpoint
         self.compile_s = 0.0
         self.trajectories = 0
+        self.programs: dict = {}  # every compiled program this evaluator called, by its key
 
     def _call(self, key, fn, args, execute: bool, clock: bool = True):
         """`fn` at `args`, compiled once per key and shapes in this process (`devices.compiled`; its
         compile time counted on `clock`); with execute False, only compiled, and the outputs' shapes
         returned."""
         start = time.perf_counter()
-        executable = devices.compiled(fn, *args, key=key)
+        executable = self.programs[key] = devices.compiled(fn, *args, key=key)
         if clock:
             self.compile_s += time.perf_counter() - start
         if execute:

@@ -74,12 +74,7 @@ def _jvp(fn, batched, always, primals, tangents):
     batch = np.shape(leaves[0])[-1:] if leaves and np.ndim(leaves[0]) else ()
     sizes = [math.prod(np.shape(leaves[i])[: np.ndim(leaves[i]) - len(batch)]) for i in active]
     values = tuple(leaves[i] for i in active)
-
-    def with_active(*values):
-        new = list(leaves)
-        for i, v in zip(active, values):
-            new[i] = v
-        return fn(jax.tree_util.tree_unflatten(tree, new))
+    with_active = _replacing(fn, tree, leaves, active)
 
     if not batch or not _pulled_back(dleaves) or (not always and sum(sizes) > MAX_FORWARD):
         return jax.jvp(with_active, values, tuple(dleaves[i] for i in active))
@@ -129,13 +124,7 @@ def tangents_on_copies(fn, params, directions, batched):
     # Copy r of the batch carries direction r: (n, ..., B) -> (..., n * B), copy-major.
     flat = lambda d: jnp.moveaxis(d, 0, -2).reshape(np.shape(d)[1:-1] + (-1,))
     moving = [i for i, d in enumerate(dleaves) if d is not None]
-
-    def on_copies(*values):
-        new = list(copies)
-        for i, v in zip(moving, values):
-            new[i] = v
-        return fn(jax.tree_util.tree_unflatten(tree, new))
-
+    on_copies = _replacing(fn, tree, copies, moving)
     out, tangents = jax.jvp(on_copies, tuple(copies[i] for i in moving), tuple(flat(dleaves[i]) for i in moving))
     split = lambda y: jnp.moveaxis(jnp.reshape(y, np.shape(y)[:-1] + (n, -1)), -2, 0)
     flags = batched(out)
@@ -144,6 +133,18 @@ def tangents_on_copies(fn, params, directions, batched):
         lambda t, b: split(t) if b and t.dtype != jax.dtypes.float0 else t, tangents, flags
     )
     return first, tangents
+
+
+def _replacing(fn, tree, leaves, indices):
+    """`fn` of these leaves with those at `indices` taken as its arguments (what jvp differentiates)."""
+
+    def at(*values):
+        new = list(leaves)
+        for i, v in zip(indices, values):
+            new[i] = v
+        return fn(jax.tree_util.tree_unflatten(tree, new))
+
+    return at
 
 
 def _pulled_back(tangents) -> bool:
