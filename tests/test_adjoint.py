@@ -66,6 +66,22 @@ def test_many_components_are_transposed_through_the_loop_unless_forward_is_asked
     np.testing.assert_allclose(jax.grad(loss("forward"))(big["a"]), jax.grad(loss("auto"))(big["a"]), rtol=1e-13)
 
 
+def test_single_precision_takes_the_jacobian_whatever_the_number_of_components():
+    """In float32 the loop's transpose gave NaN derivatives to some samples (docs/speed.md)."""
+    a = jnp.tile(P["a"], (5, 1)).astype(jnp.float32)  # 10 components per sample
+    single = {**P, "a": a, "b": P["b"].astype(jnp.float32)}
+
+    def fold(p):
+        return toy({**p, "a": p["a"].reshape(5, 2, -1).sum(0)})
+
+    def loss(how):
+        return lambda a: differentiate(fold, {**single, "a": a}, flags, how)["x"].sum()
+
+    assert scans(jax.grad(loss("auto")), a) == 1
+    assert scans(jax.grad(loss("reverse")), a) == 2
+    np.testing.assert_allclose(jax.grad(loss("auto"))(a), jax.grad(loss("reverse"))(a), rtol=1e-5)
+
+
 def test_grad_of_a_hard_model_batch_matches_central_differences_and_compiles_the_loop_once():
     """The sliding-mode step, a batch of three bodies, float64: d(per-sample weighted peak grip and
     lag)/d(K_GP, and each sample's own M_b) by `grad` (through the Jacobian) against central

@@ -23,7 +23,9 @@ Under forward mode itself (`jax.jvp`, `jax.jacfwd`) the rule is the plain tangen
 whatever the number of components. Under reverse mode, `"auto"` takes the forward Jacobian when at
 most `MAX_FORWARD` components are differentiated (its run time grows with their number) and
 otherwise the plain tangent, which reverse mode transposes through the loop, as `"reverse"` always
-does.
+does. In single precision `"auto"` takes the Jacobian whatever the number of components: there the
+loop's transpose gave NaN derivatives to a few samples whose values and forward-mode derivatives
+are finite (docs/speed.md, "The first derivative").
 """
 
 from __future__ import annotations
@@ -76,7 +78,8 @@ def _jvp(fn, batched, always, primals, tangents):
     values = tuple(leaves[i] for i in active)
     with_active = _replacing(fn, tree, leaves, active)
 
-    if not batch or not _pulled_back(dleaves) or (not always and sum(sizes) > MAX_FORWARD):
+    double = all(jnp.finfo(jnp.result_type(v)).bits >= 64 for v in values)
+    if not batch or not _pulled_back(dleaves) or (not always and double and sum(sizes) > MAX_FORWARD):
         return jax.jvp(with_active, values, tuple(dleaves[i] for i in active))
 
     # One direction per component of every differentiated leaf, the same for every sample.
