@@ -55,28 +55,39 @@ def _runs(config: Config, kind: str | None, names: tuple, checkpoint):
     metrics = lambda params: run_metrics(config, params, checkpoint)
     if kind is None:
         return jax.jit(metrics)
+    leaves = tuple(dict.fromkeys(split_name(n)[0] for n in names))  # the tuned names' own leaves
+
+    def tuned(params):
+        """The runs as a function of the tuned leaves alone: every other leaf is a constant, so its
+        tangent or cotangent is a symbolic zero and nothing computes its (zero) contribution."""
+        moving = lambda *values: metrics(params.with_leaves(**dict(zip(leaves, values))))
+        return moving, tuple(params.leaves()[k] for k in leaves)
+
     if kind == "jvp":
 
         def jvp(params):
             # All n tangents through one forward pass (vmap).
-            directions = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[_direction(params, n) for n in names])
-            out, tangents = jax.vmap(lambda d: jax.jvp(metrics, (params,), (d,)), out_axes=(None, 0))(directions)
+            moving, values = tuned(params)
+            directions = [_direction(params, n).leaves() for n in names]
+            stacked = tuple(jnp.stack([d[k] for d in directions]) for k in leaves)
+            out, tangents = jax.vmap(lambda *d: jax.jvp(moving, values, d), out_axes=(None, 0))(*stacked)
             return out, tangents
 
         return jax.jit(jvp)
 
     def vjp(params, cotangent):
-        out, pull = jax.vjp(metrics, params)
-        grad = pull(cotangent)[0]
+        moving, values = tuned(params)
+        out, pull = jax.vjp(moving, *values)
+        grad = dict(zip(leaves, pull(cotangent)))
         return out, jnp.stack([_pick(grad, params, n) for n in names])
 
     return jax.jit(vjp)
 
 
-def _pick(grad: Params, params: Params, name: str):
-    """d / d log(name) from the gradient with respect to the leaves: (B,)."""
+def _pick(grad: dict, params: Params, name: str):
+    """d / d log(name) from the gradient with respect to the tuned leaves (by leaf name): (B,)."""
     base, robot = split_name(name)
-    g, value = grad.leaves()[base], params.leaves()[base]
+    g, value = grad[base], params.leaves()[base]
     if robot is not None:
         return (g * value)[ROBOTS.index(robot)]
     return g * value if g.ndim == 1 else (g * value).sum(0)
