@@ -96,7 +96,7 @@ def run_child(devices: int, args, extras: bool) -> dict:
         + (["--extras"] if extras else [])
         + (["--quick"] if args.quick else [])
     )
-    env = dict(os.environ)  # XLA's defaults, unless the user set XLA_FLAGS
+    env = dict(os.environ)  # the child asks for what `use_all_cores` gives a user (XLA_FLAGS of the user's kept)
     print(f"coopjax on {devices} device(s) ...", flush=True)
     proc = subprocess.run(cmd, cwd=os.path.dirname(HERE), env=env, stdout=subprocess.PIPE, text=True)
     if proc.returncode != 0:

@@ -216,7 +216,9 @@ def main():
 
     import jax
 
-    jax.config.update("jax_num_cpu_devices", args.devices)
+    import coopjax as cj
+
+    cj.use_all_cores(args.devices)  # as a user's program: its devices, and XLA's widest vectors
     jax.config.update("jax_enable_x64", True)  # float32 runs ask for float32 explicitly
     Bs = [int(b) for b in args.Bs.split(",")]
     result = dict(

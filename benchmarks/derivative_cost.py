@@ -37,11 +37,12 @@ def main(argv=None):
 
     import jax
 
-    jax.config.update("jax_enable_x64", True)
-    jax.config.update("jax_num_cpu_devices", os.cpu_count() or 1)
     import numpy as np
 
     import coopjax as cj
+
+    jax.config.update("jax_enable_x64", True)
+    cj.use_all_cores()  # as `coopjax tune`: every core, and XLA's widest vectors
     from tuning import constrained
     from tuning.evaluate import Evaluator
     from tuning.problem import Problem, expand_params, starting_points

@@ -1,7 +1,7 @@
 """Where coopjax's step time goes: `python -m benchmarks.profile_step [--dtype float64] [--integrator filippov]`.
 
-Carry scenario, hard switch, dt = 1e-3, one device, XLA's default flags. It times, per time step
-(medians of 5, 500 steps), at batch sizes 1, 32, 256 and 1024:
+Carry scenario, hard switch, dt = 1e-3, one device, XLA's flags as `coopjax.use_all_cores` sets
+them. It times, per time step (medians of 5, 500 steps), at batch sizes 1, 32, 256 and 1024:
 
 - the step alone in a `lax.scan` (no metrics, no divergence bookkeeping);
 - `integrate`, the real loop (metrics, divergence).
@@ -33,6 +33,8 @@ def main(argv=None):
     jax.config.update("jax_enable_x64", True)
     import coopjax as cj
     from coopjax import model
+
+    cj.use_all_cores(1)  # one device, XLA's widest vectors as a user's program has them
     from coopjax.integration import INTEGRATORS
     from coopjax.scenarios import get
     from coopjax.simulation import metrics_of

@@ -17,9 +17,10 @@ import sys
 CHILD = r"""
 import json, statistics, sys, time
 import jax
+import coopjax as cj
 devices, B, repeats = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 x64, integrator = sys.argv[4] == "1", sys.argv[5]
-jax.config.update("jax_num_cpu_devices", devices)
+cj.use_all_cores(devices)
 jax.config.update("jax_enable_x64", x64)
 import numpy as np
 from coopjax import sweeps

@@ -44,3 +44,47 @@ def test_a_failed_compile_reaches_the_caller_and_the_next_call_compiles_again():
         devices.compiled(program, np.ones(3))
     assert devices.compiled(program, np.ones(3)) == ("executable", 2)
     assert devices.compiled(program, np.ones(3)) == ("executable", 2)  # kept from then on
+
+
+@pytest.mark.parametrize("avx512", [True, False])
+def test_wide_vectors_are_asked_for_where_the_cpu_has_them_and_a_users_width_is_kept(avx512, monkeypatch):
+    monkeypatch.setattr(devices, "_has_avx512", lambda: avx512)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    assert devices.wide_vectors() is avx512
+    expected = "--xla_cpu_use_fusion_emitters=false" + (" " + devices.WIDE_VECTORS if avx512 else "")
+    assert devices.os.environ["XLA_FLAGS"] == expected
+    assert devices.wide_vectors() is avx512  # asked twice: added once
+    assert devices.os.environ["XLA_FLAGS"] == expected
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_prefer_vector_width=256")
+    assert devices.wide_vectors() is False
+    assert devices.os.environ["XLA_FLAGS"] == "--xla_cpu_prefer_vector_width=256"
+
+
+def test_wide_vectors_give_the_same_answers(tmp_path):
+    """The sliding-mode step's metrics and final states in float64 and float32, with XLA's defaults
+    and with 512-bit vectors, each in a fresh process: the vector width changes the code, not the
+    arithmetic (the same bits, measured; compared here to 1e-13)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np, jax; jax.config.update('jax_enable_x64', True); import coopjax as cj; "
+        "rng = np.random.default_rng(3); metrics, states = [], []\n"
+        "for dtype in ('float64', 'float32'):\n"
+        "    p = cj.make_params(M_b=rng.uniform(0.5, 20, 8), K_GP=rng.uniform(0.1, 0.9, 8), dtype=dtype)\n"
+        "    s = cj.simulate(p, 'carry', T=0.6, dtype=dtype)\n"
+        "    metrics += [np.asarray(x, np.float64) for x in s.metrics]\n"
+        "    states.append(np.asarray(s.y_final, np.float64))\n"
+        "np.savez(sys.argv[1], metrics=np.stack(metrics), states=np.concatenate(states))"
+    )
+    answers = []
+    for flags in ("", devices.WIDE_VECTORS):
+        out = tmp_path / f"answers{len(answers)}.npz"
+        env = {**os.environ, "XLA_FLAGS": flags}
+        run = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env)
+        assert run.returncode == 0, run.stderr
+        answers.append(np.load(out))
+    assert np.isfinite(answers[0]["states"]).all()  # (metrics whose window is later than T are NaN)
+    for part in ("metrics", "states"):
+        np.testing.assert_allclose(answers[1][part], answers[0][part], rtol=1e-13, atol=0)

@@ -66,6 +66,9 @@ def main(argv=None) -> int:
         args.argv = list(sys.argv[1:] if argv is None else argv)  # what a supervised child repeats
         if args.compiles:  # a command that compiles nothing neither needs the cache nor hears of it
             cache.enable()
+            from coopjax import devices  # jax with it: only for commands that compile
+
+            devices.wide_vectors()  # before JAX's backend starts (each command starts it later)
         code = args.run(args)
         said = cache.note()
         if said:
