@@ -3,9 +3,10 @@ included), for plain RK4 and the sliding-mode step.
 
     python benchmarks/sweep_throughput.py [--B 4096] [--repeats 5]
 
-Carry scenario, dt = 1e-3, hard switch, XLA's default flags. Each device count runs in its own process, because the
-count is fixed once JAX starts. Compile time is reported apart; runs are medians and wait for
-the result; the 2-device / 1-device ratio is taken in this one invocation.
+Carry scenario, dt = 1e-3, hard switch, XLA's flags as `use_all_cores` sets them. Each device
+count runs in its own process, because the count is fixed once JAX starts. Compile time is
+reported apart; runs are medians and wait for the result; the 2-device / 1-device ratio is taken
+in this one invocation.
 """
 
 import argparse

@@ -29,7 +29,7 @@ LARGE_BATCH = 1024  # samples: below this, one core is not worth a warning
 BLOCK = 256
 # XLA's CPU backend vectorises with 256-bit registers by default (512-bit ones lower the clock of some
 # Intel CPUs). On an AVX-512 CPU of this project's machines (AMD Zen 4) 512-bit vectors ran the
-# sliding-mode step 1.1x to 1.25x faster, with the same bits (docs/speed.md).
+# sliding-mode step 1.1x to 1.26x faster, with the same bits (docs/speed.md).
 WIDE_VECTORS = "--xla_cpu_prefer_vector_width=512"
 _warned = False
 

@@ -5,7 +5,8 @@ import os
 # The classic XLA CPU emitters for the suite: it is bound by compile time (a hundred programs, most
 # run briefly), and they compile this model's programs faster (the suite took 361 s with XLA's
 # defaults against 269 s, measured). They change the generated code, so results move by round-off
-# only; the library, the CLI and the benchmarks use XLA's defaults, which run the step faster.
+# only; the library, the CLI and the benchmarks use XLA's defaults (with 512-bit vectors on
+# AVX-512), which run the step faster.
 # Set before JAX starts; a user's own XLA_FLAGS choice is kept.
 # LLVM's optimisation level 0 for the same reason: 13 % off the hard-model gradient test (38 s -> 33 s).
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
