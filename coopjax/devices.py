@@ -60,6 +60,7 @@ def wide_vectors() -> bool:
 def use_all_cores(n: int | None = None) -> int:
     """One XLA CPU device per core (or `n`), and the CPU's widest vectors (`wide_vectors`); call
     before any JAX computation. Returns the device count."""
+    global _warned
     n = (os.cpu_count() or 1) if n is None else n
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InputError(f"n = {n!r}: at least one device", "n")
@@ -72,6 +73,7 @@ def use_all_cores(n: int | None = None) -> int:
                 f"JAX has already started with {jax.device_count()} device(s): call coopjax.use_all_cores() "
                 "before anything creates a JAX array (first thing after the imports)"
             ) from None
+    _warned = True  # a device count asked for is not one to warn about
     return jax.device_count()
 
 

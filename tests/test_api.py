@@ -104,6 +104,14 @@ def test_a_large_batch_on_one_core_of_several_says_so(monkeypatch):
         devices.run(_body_mass, params)
         devices.run(_body_mass, params)  # once only
     assert len(caught) == 1 and "use_all_cores" in str(caught[0].message)
+    # A device count asked for (here the one this process has) is not warned about.
+    monkeypatch.setattr(devices, "_warned", False)
+    monkeypatch.setattr(devices, "wide_vectors", lambda: False)
+    devices.use_all_cores(jax.device_count())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        devices.run(_body_mass, params)
+    assert caught == []
 
 
 @pytest.mark.parametrize(
