@@ -60,6 +60,14 @@ def wide_vectors() -> bool:
 def use_all_cores(n: int | None = None) -> int:
     """One XLA CPU device per core (or `n`), and the CPU's widest vectors (`wide_vectors`); call
     before any JAX computation. Returns the device count."""
+    request_devices(n)
+    return jax.device_count()
+
+
+def request_devices(n: int | None = None) -> None:
+    """`use_all_cores` without starting JAX's backend (the command line starts `jax.distributed`
+    after it): the device count and vector width JAX's backend will start with. Raises InputError if
+    the backend has already started with another count."""
     global _warned
     n = (os.cpu_count() or 1) if n is None else n
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
@@ -74,7 +82,6 @@ def use_all_cores(n: int | None = None) -> int:
                 "before anything creates a JAX array (first thing after the imports)"
             ) from None
     _warned = True  # a device count asked for is not one to warn about
-    return jax.device_count()
 
 
 def _warn_one_core(batch: int) -> None:

@@ -22,7 +22,7 @@ from coopjax.cli import interrupts
 from coopjax.cli.common import BadInput, assignments, check_output
 from coopjax.errors import InputError
 from coopjax.io import Outputs, write_json
-from coopjax import scenarios
+from coopjax import devices, scenarios
 from coopjax.objectives import METRICS
 from coopjax.params import PARAMETERS, split_name
 from coopjax.simulation import memory_limit, simulate
@@ -539,8 +539,8 @@ def run(args) -> int:
     if args.devices is not None and args.devices < 1:
         raise BadInput(f"--devices is {args.devices}: it must be at least 1")
     try:
-        jax.config.update("jax_num_cpu_devices", args.devices or os.cpu_count() or 1)
-    except RuntimeError:  # the backend is already up (a test, or an embedding program): keep its devices
+        devices.request_devices(args.devices or None)  # a count asked for is not warned about
+    except InputError:  # the backend is already up (a test, or an embedding program): keep its devices
         pass
     if args.show_problem:  # before any output is checked: it writes nothing
         print(build_problem(args).to_toml(), end="")

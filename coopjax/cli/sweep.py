@@ -9,11 +9,12 @@ import time
 import jax
 import numpy as np
 
-from coopjax import objectives, sweeps
+from coopjax import devices, objectives, sweeps
 from coopjax.status import Status
 from coopjax.cli import interrupts, supervise
 from coopjax.cli.common import BadInput, assignments, check_output, config_arguments, config_from
 from coopjax.config import step_size_note
+from coopjax.errors import InputError
 from coopjax.io import read_table, write_table
 
 NAME = "sweep"
@@ -138,8 +139,8 @@ def run(args) -> int:
     # Set here, before anything creates an array: JAX fixes the device count when its backend starts
     # (a caller that already started it keeps its own). No file is touched yet.
     try:
-        jax.config.update("jax_num_cpu_devices", args.devices or os.cpu_count() or 1)
-    except RuntimeError:
+        devices.request_devices(args.devices or None)  # before jax.distributed; not warned about
+    except InputError:  # the backend is already up with another count: it keeps its devices
         pass
     if args.x64:
         jax.config.update("jax_enable_x64", True)
