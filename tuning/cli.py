@@ -752,7 +752,7 @@ class _StartSide(threading.Thread):
     `JUDGE_BLOCK`). An error is raised where the result is asked."""
 
     def __init__(self, plan: Plan):
-        super().__init__(daemon=True)  # Ctrl-C does not wait for it
+        super().__init__(daemon=True, name="coopjax-judge")  # Ctrl-C does not wait for it
         self.plan, self.value, self.error = plan, None, None
         self.start()
 

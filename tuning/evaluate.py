@@ -52,7 +52,10 @@ def _direction(params: Params, name: str) -> Params:
 def _runs(config: Config, kind: str | None, names: tuple, checkpoint):
     """The jitted runs of one scenario: params -> metrics; with kind "jvp" also their tangents
     (n, B) along each tuned name; with "vjp", (params, cotangents of the metrics) -> (n, B)."""
-    metrics = lambda params: run_metrics(config, params, checkpoint)
+
+    def metrics(params):  # a name of its own in JAX's and XLA's logs and timers
+        return run_metrics(config, params, checkpoint)
+
     if kind is None:
         return jax.jit(metrics)
     leaves = tuple(dict.fromkeys(split_name(n)[0] for n in names))  # the tuned names' own leaves
