@@ -28,24 +28,25 @@ import numpy as np
 
 from coopjax import devices
 from coopjax.config import Config
-from coopjax.params import ROBOTS, Params, split_name
+from coopjax.params import ROBOTS, split_name
 from tuning.problem import Problem, bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
 
 OUTPUTS = ("f", "c", "parts", "min_swi")  # what a Jacobian is taken of
 
 
-def _direction(params: Params, name: str) -> Params:
-    """d params / d log(name): the named leaf's own value (one robot's row for `K_GP_L`), else 0."""
+def _direction(values: dict, name: str) -> dict:
+    """d (the tuned leaves, by name) / d log(name): the named leaf's own value (one robot's row for
+    `K_GP_L`), else 0."""
     base, robot = split_name(name)
-    tangent = {k: jnp.zeros_like(v) for k, v in params.leaves().items()}
-    leaf = params.leaves()[base]
+    tangent = {k: jnp.zeros_like(v) for k, v in values.items()}
+    leaf = values[base]
     if robot is None:
         tangent[base] = leaf
     else:
         rows = jnp.arange(leaf.shape[0]).reshape((-1,) + (1,) * (leaf.ndim - 1))
         tangent[base] = jnp.where(rows == ROBOTS.index(robot), leaf, 0.0)
-    return params.with_leaves(**tangent)
+    return tangent
 
 
 @functools.lru_cache(maxsize=64)
@@ -61,36 +62,38 @@ def _runs(config: Config, kind: str | None, names: tuple, checkpoint):
     leaves = tuple(dict.fromkeys(split_name(n)[0] for n in names))  # the tuned names' own leaves
 
     def tuned(params):
-        """The runs as a function of the tuned leaves alone: every other leaf is a constant, so its
-        tangent or cotangent is a symbolic zero and nothing computes its (zero) contribution."""
+        """The runs as a function of the tuned leaves alone, and those leaves (by name): every other
+        leaf is a constant, so its tangent or cotangent is a symbolic zero and nothing computes its
+        (zero) contribution."""
         moving = lambda *values: metrics(params.with_leaves(**dict(zip(leaves, values))))
-        return moving, tuple(params.leaves()[k] for k in leaves)
+        return moving, {k: params.leaves()[k] for k in leaves}
 
     if kind == "jvp":
 
         def jvp(params):
             # All n tangents through one forward pass (vmap).
             moving, values = tuned(params)
-            directions = [_direction(params, n).leaves() for n in names]
+            directions = [_direction(values, n) for n in names]
             stacked = tuple(jnp.stack([d[k] for d in directions]) for k in leaves)
-            out, tangents = jax.vmap(lambda *d: jax.jvp(moving, values, d), out_axes=(None, 0))(*stacked)
+            primals = tuple(values.values())
+            out, tangents = jax.vmap(lambda *d: jax.jvp(moving, primals, d), out_axes=(None, 0))(*stacked)
             return out, tangents
 
         return jax.jit(jvp)
 
     def vjp(params, cotangent):
         moving, values = tuned(params)
-        out, pull = jax.vjp(moving, *values)
+        out, pull = jax.vjp(moving, *values.values())
         grad = dict(zip(leaves, pull(cotangent)))
-        return out, jnp.stack([_pick(grad, params, n) for n in names])
+        return out, jnp.stack([_pick(grad, values, n) for n in names])
 
     return jax.jit(vjp)
 
 
-def _pick(grad: dict, params: Params, name: str):
-    """d / d log(name) from the gradient with respect to the tuned leaves (by leaf name): (B,)."""
+def _pick(grad: dict, values: dict, name: str):
+    """d / d log(name) from the gradient with respect to the tuned leaves (both by leaf name): (B,)."""
     base, robot = split_name(name)
-    g, value = grad[base], params.leaves()[base]
+    g, value = grad[base], values[base]
     if robot is not None:
         return (g * value)[ROBOTS.index(robot)]
     return g * value if g.ndim == 1 else (g * value).sum(0)
