@@ -40,8 +40,8 @@ from jax.custom_derivatives import SymbolicZero
 
 ADJOINTS = ("auto", "forward", "reverse")
 # Above this many differentiated components, reverse mode through the loop is faster at run time
-# than the Jacobian (the sliding-mode step, 256 bodies: 17.1 s by the Jacobian against 24.2 s
-# through the loop at 8 components, 38.6 against 24.4 s at 16; docs/speed.md).
+# than the Jacobian (the sliding-mode step, 256 bodies, float32: 15.6 s by the Jacobian against
+# 18.3 s through the loop at 8 components, 34.0 against 18.5 s at 16; docs/speed.md).
 MAX_FORWARD = 8
 # Up to this many samples in all (components x batch), the components run as copies of the batch
 # (`tangents_on_copies`: the plain jvp's program, the fastest to compile; its primal runs once per
