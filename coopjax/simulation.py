@@ -92,8 +92,7 @@ def simulate(
         the Jacobian along every differentiated parameter component, computed in forward mode (one
         tangent each): half the program of reverse mode through the loop, and faster for a few
         parameters. "reverse" transposes the time loop (memory as `checkpoint` says). "auto" (the
-        default) is "forward" for at most 8 differentiated components and "reverse" above, except in
-        float32, where it is always "forward" (the loop's transpose gave some samples NaN there).
+        default) is "forward" for at most 8 differentiated components and "reverse" above.
         Forward mode (`jvp`, `jacfwd`) gives the same derivatives under all three. Through the
         Jacobian, a loss that takes in a NaN metric (one whose window a short run never reaches)
         has a NaN derivative as well as a NaN value.

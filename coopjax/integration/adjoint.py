@@ -23,9 +23,7 @@ Under forward mode itself (`jax.jvp`, `jax.jacfwd`) the rule is the plain tangen
 whatever the number of components. Under reverse mode, `"auto"` takes the forward Jacobian when at
 most `MAX_FORWARD` components are differentiated (its run time grows with their number) and
 otherwise the plain tangent, which reverse mode transposes through the loop, as `"reverse"` always
-does. In single precision `"auto"` takes the Jacobian whatever the number of components: there the
-loop's transpose gave NaN derivatives to a few samples whose values and forward-mode derivatives
-are finite (docs/speed.md, "The first derivative").
+does.
 """
 
 from __future__ import annotations
@@ -40,8 +38,8 @@ from jax.custom_derivatives import SymbolicZero
 
 ADJOINTS = ("auto", "forward", "reverse")
 # Above this many differentiated components, reverse mode through the loop is faster at run time
-# than the Jacobian (the sliding-mode step, 256 bodies, float32: 15.6 s by the Jacobian against
-# 18.3 s through the loop at 8 components, 34.0 against 18.5 s at 16; docs/speed.md).
+# than the Jacobian (the sliding-mode step, 256 bodies, float32: 16.1 s by the Jacobian against
+# 17.0 s through the loop at 8 components, 32.7 against 19.8 s at 16; docs/speed.md).
 MAX_FORWARD = 8
 # Up to this many samples in all (components x batch), the components run as copies of the batch
 # (`tangents_on_copies`: the plain jvp's program, the fastest to compile; its primal runs once per
@@ -78,8 +76,7 @@ def _jvp(fn, batched, always, primals, tangents):
     values = tuple(leaves[i] for i in active)
     with_active = _replacing(fn, tree, leaves, active)
 
-    double = all(jnp.finfo(jnp.result_type(v)).bits >= 64 for v in values)
-    if not batch or not _pulled_back(dleaves) or (not always and double and sum(sizes) > MAX_FORWARD):
+    if not batch or not _pulled_back(dleaves) or (not always and sum(sizes) > MAX_FORWARD):
         return jax.jvp(with_active, values, tuple(dleaves[i] for i in active))
 
     # One direction per component of every differentiated leaf, the same for every sample.

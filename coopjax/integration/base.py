@@ -16,6 +16,7 @@ from typing import Callable, ClassVar, Mapping, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from coopjax import model
 from coopjax.errors import InputError
@@ -41,6 +42,20 @@ class Path(NamedTuple):
     def whole(cls, start, end) -> "Path":
         """One piece: a step the integrator does not cut."""
         return cls(jnp.ones((1,) + end.shape[1:], end.dtype), start[None], end[None])
+
+
+# The checkpoint name of the values a step's path is decided by (for the sliding-mode step: each
+# piece's plan, its cut, and whether it runs). Under reverse mode the time loop's checkpoint saves
+# them instead of recomputing them (`loop.integrate`). The recomputation is a program of its own,
+# which XLA may round differently; a decision that came out the other way there made the backward
+# pass differentiate a path the forward pass had not taken: NaN float32 derivatives for 6 bodies
+# in 256 (docs/speed.md, "The first derivative").
+DECISIONS = "coopjax_decisions"
+
+
+def decided(values):
+    """`values` (a pytree of arrays) named as path decisions (`DECISIONS`)."""
+    return jax.tree_util.tree_map(lambda x: checkpoint_name(x, DECISIONS), values)
 
 
 class Observation(NamedTuple):

@@ -70,7 +70,7 @@ import jax
 import jax.numpy as jnp
 
 from coopjax import model
-from coopjax.integration.base import Integrator, Path, register
+from coopjax.integration.base import Integrator, Path, decided, register
 from coopjax.integration.tableau import RK4
 from coopjax.scenarios import Clock
 
@@ -488,7 +488,7 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
     # other three stages do not compute (and discard) them. No switch is held yet: the plan decides.
     free_switch = (jnp.full(touching[0].shape, Switch.FREE),) * 2
     fs, body = fields(ps, rows, clock, Overrides(touching, apart, free_switch), scenario, options)
-    piece = plan(ps, rows, fs, body, remaining, touching, dt, options, last, kept)
+    piece = decided(plan(ps, rows, fs, body, remaining, touching, dt, options, last, kept))
     held_switch = piece.overrides.switch
     thetas = tuple(fractions(f, s_n, piece.h) for f, s_n in zip(fs, sigma_n))
     lam_star = tuple(sliding_weight(f) for f in fs)
@@ -515,6 +515,7 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
         )
         for f, r, s_n, switch, (theta_below, theta_above) in zip(fs, lam_star, sigma_n, held_switch, thetas)
     )
+    free, leaving = decided((free, leaving))
     overrides = piece.overrides._replace(free=free, leaving=leaving)
     k = _rates(fs, body, sigma_n, piece.h, overrides, thetas)
     # The start's weights without `free`: lambda* clipped, so the recorded signals and `Held.rate`
@@ -613,6 +614,8 @@ def step(params, y, t, dt, scenario, options):
     Up to `PIECES` substeps, each ending at the first event (see "Events" in the module docstring).
     A substep with nothing left to do for every sample of the batch (most steps have one piece) is
     skipped: an exact no-op for a finite state, and the largest saving of the step.
+    The path (each piece's plan and cut, and whether it runs) is named `DECISIONS`, so that reverse
+    mode keeps it from the forward pass instead of recomputing it (`base.DECISIONS`).
     """
     rows = Rows.of(y)
     ps = model.robots(params)
@@ -655,8 +658,11 @@ def step(params, y, t, dt, scenario, options):
         )
         h = jnp.where(cut, tau, planned.h)
         theta = h / jnp.where(planned.h > 0.0, planned.h, 1.0)
-        h, theta, cut, tau, events = as_buffers(
-            (h, theta, cut, tau, events), (planned.h, jnp.ones_like(theta), jnp.zeros_like(cut), planned.h, events)
+        h, theta, cut, tau, events = decided(
+            as_buffers(
+                (h, theta, cut, tau, events),
+                (planned.h, jnp.ones_like(theta), jnp.zeros_like(cut), planned.h, events),
+            )
         )
         rows_cut = dense(carry.rows, planned.h, piece.stages, theta)
         F_end = forces(touches(ps, rows_cut, options, planned.overrides))
@@ -683,7 +689,7 @@ def step(params, y, t, dt, scenario, options):
 
     def piece(carry: Progress, j):
         # One predicate for the whole batch; under `vmap` the cond becomes a select and both run.
-        return jax.lax.cond((carry.remaining > 0.0).any(), run, skip, carry, j)
+        return jax.lax.cond(decided((carry.remaining > 0.0).any()), run, skip, carry, j)
 
     signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
     free_switch = jnp.full(y.shape[1:], Switch.FREE)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from coopjax import model
 from coopjax.errors import InputError
-from coopjax.integration.base import INTEGRATORS, Observation, Path
+from coopjax.integration.base import DECISIONS, INTEGRATORS, Observation, Path
 from coopjax.params import Params
 from coopjax.scenarios import get
 
@@ -89,8 +89,9 @@ def integrate(
     """Run the closed loop from rest over the horizon. Params must carry a batch axis.
 
     `every` records the state and signals every this many steps (None: metrics only). Under
-    reverse-mode differentiation, `checkpoint=True` rematerialises each step (memory grows with the
-    number of steps, one carry each); "nested" also checkpoints blocks of sqrt(n) steps, so memory
+    reverse-mode differentiation, `checkpoint=True` rematerialises each step except the values its
+    integrator names as its path (`base.DECISIONS`; memory grows with the number of steps, one carry
+    and one path each); "nested" also checkpoints blocks of sqrt(n) steps, so memory
     grows with sqrt(n) at the cost of one more forward pass; "segment" checkpoints only the blocks
     and keeps every intermediate inside one (sqrt(n) steps of them), which on CPU is the slowest
     (benchmarks/derivative_cost.py); False stores every intermediate.
@@ -122,7 +123,8 @@ def integrate(
         return (y, acc, diverged, t_div), None
 
     if checkpoint in (True, "nested"):
-        advance = jax.checkpoint(advance)
+        # The step is recomputed from its carry, but not the path it took (`DECISIONS`).
+        advance = jax.checkpoint(advance, policy=jax.checkpoint_policies.save_only_these_names(DECISIONS))
 
     def steps(carry, k0, count):
         ks = k0 + jnp.arange(count, dtype=jnp.int32)
