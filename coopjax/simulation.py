@@ -97,7 +97,8 @@ def simulate(
         Jacobian, a loss that takes in a NaN metric (one whose window a short run never reaches)
         has a NaN derivative as well as a NaN value.
       checkpoint: under reverse-mode differentiation through the loop, True rematerialises each
-        step; "nested" also checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n));
+        step from its start but keeps the path the forward pass took (the sliding-mode step's plans
+        and cuts); "nested" also checkpoints blocks of sqrt(n) steps (memory grows with sqrt(n));
         "segment" checkpoints the blocks only and stores the steps inside one; False stores
         everything.
       check_dt: True refuses (InputError) a step beyond the stability limit of the linearised loop,
