@@ -657,6 +657,9 @@ def step(params, y, t, dt, scenario, options):
             jnp.where(events[0].found, events[0].time, jnp.inf), jnp.where(events[1].found, events[1].time, jnp.inf)
         )
         h = jnp.where(cut, tau, planned.h)
+        # A piece that reaches the step's end (the rest is 0 to round-off) ends there in its tangent
+        # too: the same value, but the rest's tangent would otherwise be lost with the piece skipped.
+        h = jnp.where(h >= carry.remaining, carry.remaining, h)
         theta = h / jnp.where(planned.h > 0.0, planned.h, 1.0)
         h, theta, cut, tau, events = decided(
             as_buffers(
