@@ -490,7 +490,10 @@ def substep(ps, rows: Rows, clock: Clock, remaining, touching, kept, dt, scenari
     fs, body = fields(ps, rows, clock, Overrides(touching, apart, free_switch), scenario, options)
     piece = decided(plan(ps, rows, fs, body, remaining, touching, dt, options, last, kept))
     held_switch = piece.overrides.switch
-    thetas = tuple(fractions(f, s_n, piece.h) for f, s_n in zip(fs, sigma_n))
+    # sigma at the start and the fractions theta are the piece's plan too (`decided`): their signs and
+    # clips pick the weight's formula, and a recomputation that rounded them the other way moved a
+    # float32 derivative by 1 % (docs/speed.md).
+    sigma_n, thetas = decided((sigma_n, tuple(fractions(f, s_n, piece.h) for f, s_n in zip(fs, sigma_n))))
     lam_star = tuple(sliding_weight(f) for f in fs)
     # 0 < lambda* < 1 only where the two rates differ (`sliding_weight` is 0 or 1 elsewhere).
     free = tuple(
