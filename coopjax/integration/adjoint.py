@@ -38,8 +38,8 @@ from jax.custom_derivatives import SymbolicZero
 
 ADJOINTS = ("auto", "forward", "reverse")
 # Above this many differentiated components, reverse mode through the loop is faster at run time
-# than the Jacobian (the sliding-mode step, 256 bodies, float32: 16.0 s by the Jacobian against
-# 16.1 s through the loop at 8 components, 32.4 against 18.4 s at 16; docs/speed.md).
+# than the Jacobian (the sliding-mode step, 256 bodies, float32: 16.6 s by the Jacobian against
+# 15.5 s through the loop at 8 components, 35.2 against 16.0 s at 16; docs/speed.md).
 MAX_FORWARD = 8
 # Up to this many samples in all (components x batch), the components run as copies of the batch
 # (`tangents_on_copies`: the plain jvp's program, the fastest to compile; its primal runs once per

@@ -45,11 +45,11 @@ class Path(NamedTuple):
 
 
 # The checkpoint name of the values a step's path is decided by (for the sliding-mode step: each
-# piece's plan, its cut, and whether it runs). Under reverse mode the time loop's checkpoint saves
-# them instead of recomputing them (`loop.integrate`). The recomputation is a program of its own,
-# which XLA may round differently; a decision that came out the other way there made the backward
-# pass differentiate a path the forward pass had not taken: NaN float32 derivatives for 6 bodies
-# in 256 (docs/speed.md, "The first derivative").
+# piece's plan with its start's sigma and fractions theta, its cut, and whether it runs). Under
+# reverse mode the time loop's checkpoint saves them instead of recomputing them (`loop.integrate`).
+# The recomputation is a program of its own, which XLA may round differently; a decision that came
+# out the other way there made the backward pass differentiate a path the forward pass had not
+# taken: NaN float32 derivatives for 6 bodies in 256 (docs/speed.md, "The first derivative").
 DECISIONS = "coopjax_decisions"
 
 
