@@ -28,6 +28,10 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     # CLI subprocesses' programs are below a second, and each subprocess compiled them again.
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
@@ -44,6 +48,21 @@ def small_judge_block(monkeypatch):
     from tuning import judging
 
     monkeypatch.setattr(judging, "JUDGE_BLOCK", 8)
+
+
+@pytest.fixture
+def with_xla_defaults():
+    """`run(code)`: Python `code` in a fresh process with XLA's default flags, as users have them
+    (not the suite's, above), and no shared cache; returns its last line of output, read as JSON."""
+
+    def run(code):
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        done = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    return run
 
 
 @pytest.fixture

@@ -1,11 +1,6 @@
 """The adjoint: reverse mode pulled back through a forward-mode Jacobian gives the derivatives of
 the loop's own transpose, per sample, and its program holds the time loop once."""
 
-import json
-import os
-import subprocess
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,8 +9,6 @@ import pytest
 import coopjax as cj
 from coopjax.integration import adjoint as adjoint_module
 from coopjax.integration import differentiate
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def toy(p):
@@ -73,7 +66,7 @@ def test_many_components_are_transposed_through_the_loop_unless_forward_is_asked
     np.testing.assert_allclose(jax.grad(loss("forward"))(big["a"]), jax.grad(loss("auto"))(big["a"]), rtol=1e-13)
 
 
-def test_float32_derivatives_of_a_sliding_body_agree_in_forward_and_reverse_mode():
+def test_float32_derivatives_of_a_sliding_body_agree_in_forward_and_reverse_mode(with_xla_defaults):
     """The 12.0 kg body slides on F_lim, where float32 resolves the force to a few ulps, so its
     derivative depends on the program's rounding. Each mode once had it wrong, under XLA's default
     flags only, which the suite does not compile with (conftest.py): so a fresh process with them.
@@ -90,10 +83,7 @@ def test_float32_derivatives_of_a_sliding_body_agree_in_forward_and_reverse_mode
         "forward = jax.jit(lambda k: jax.jvp(losses, (k,), (jnp.ones_like(k),))[1])(k0)\n"
         "print(json.dumps([[float(x) for x in reverse], [float(x) for x in forward]]))"
     )
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
-    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr[-2000:]
-    reverse, forward = json.loads(run.stdout.strip().splitlines()[-1])
+    reverse, forward = with_xla_defaults(code)
     assert np.isfinite(reverse).all() and np.isfinite(forward).all(), (reverse, forward)
     np.testing.assert_allclose(reverse, forward, rtol=1e-3)
 

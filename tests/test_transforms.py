@@ -1,7 +1,6 @@
 """JAX transformations of the public API: vmap against a loop, grad of vmap against vmap of grad,
 jit with no recompilation, and the layers of the code (import-linter's contracts in pyproject.toml)."""
 
-import json
 import logging
 import os
 import subprocess
@@ -67,7 +66,7 @@ def test_the_import_contracts_hold():
 
 
 @pytest.mark.slow
-def test_xla_default_flags_give_the_suites_answer_to_round_off():
+def test_xla_default_flags_give_the_suites_answer_to_round_off(with_xla_defaults):
     """The suite compiles with faster-compiling XLA flags (conftest.py); users get XLA's defaults.
     A run under the defaults, in a fresh process, equals the suite's to round-off."""
     code = (
@@ -75,10 +74,7 @@ def test_xla_default_flags_give_the_suites_answer_to_round_off():
         "m = cj.simulate(cj.make_params(M_b=3.0, K_GP=0.3), 'paper', switch='smooth', T=0.5).metrics; "
         "print(json.dumps({k: float(getattr(m, k)) for k in ('min_grip', 'peak_grip', 'slip', 'crush')}))"
     )
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
-    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr[-2000:]
-    theirs = json.loads(run.stdout.strip().splitlines()[-1])
+    theirs = with_xla_defaults(code)
     ours = cj.simulate(cj.make_params(M_b=3.0, K_GP=0.3), "paper", switch="smooth", T=0.5).metrics
     for name, value in theirs.items():
         np.testing.assert_allclose(value, float(getattr(ours, name)), rtol=1e-9, atol=1e-12, err_msg=name)
