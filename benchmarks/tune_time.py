@@ -7,6 +7,10 @@ that built it), the seconds spent tracing it, lowering it to StableHLO and compi
 loading it from the cache); and, per kind of the tuner's evaluations, how many ran and their
 seconds. Programs that take under 0.1 s in every phase are summed in one row. Writes
 benchmarks/tune_time.json.
+
+The runs import coopjax and tuning as the calling process would, so another checkout of the project
+is measured the same way with `PYTHONPATH=/path/to/checkout python -m benchmarks.tune_time --out
+other.json` (for a before-and-after table of a change).
 """
 
 from __future__ import annotations
@@ -43,9 +47,9 @@ monitoring.register_event_duration_secs_listener(on)
 from tuning import evaluate
 runs = collections.defaultdict(list)
 call = evaluate.Evaluator._call
-def timed(self, key, fn, args, execute, clock=True):
+def timed(self, key, fn, args, execute, *rest):
     t = time.perf_counter()
-    out = call(self, key, fn, args, execute, clock)
+    out = call(self, key, fn, args, execute, *rest)
     if execute and key[0] == "runs":
         runs[str(key[2] or "values")].append(time.perf_counter() - t)
     return out
