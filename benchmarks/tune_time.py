@@ -10,7 +10,8 @@ benchmarks/tune_time.json.
 
 The runs import coopjax and tuning as the calling process would, so another checkout of the project
 is measured the same way with `PYTHONPATH=/path/to/checkout python -m benchmarks.tune_time --out
-other.json` (for a before-and-after table of a change).
+other.json`, run from this checkout (where `benchmarks` is found), for a before-and-after table of a
+change.
 """
 
 from __future__ import annotations
