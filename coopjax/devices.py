@@ -154,6 +154,7 @@ def run(
     batched=_all_batched,
     block: int = BLOCK,
     fixed_block: bool = False,
+    slabs: bool = False,
     shard_traced: bool = False,
     devices: int | None = None,
 ):
@@ -164,10 +165,13 @@ def run(
       batch smaller than that is one slab padded to a multiple of the device count (with
       `fixed_block`, every slab is `devices x block`, so the compiled program never depends on the
       batch size: the sweeps' tables are bit-identical whatever their chunking). The padding repeats
-      the last sample, and is dropped from the results.
+      the last sample, and is dropped from the results. A batch of several slabs runs in order of
+      body mass (`_grouped`) and comes back in the caller's order.
     - A traced batch (under the caller's `jit` or `grad`) runs as `fn` in the caller's program, or,
       with `shard_traced`, padded and split over the devices inside it.
-    - With one device, `fn` is jitted (concrete) or called (traced) as it is.
+    - With one device, `fn` is jitted (concrete) or called (traced) as it is; with `slabs` (for a
+      step that decides work per batch, `Integrator.batch_decisions`), a concrete batch larger than
+      `block` is cut into equal slabs of at most `block`, as on several devices.
 
     `fn` must be hashable (it keys the cache of compiled programs) and map a batch to a pytree
     whose leaves, where `batched(out)` says so, carry the batch as their last axis.
@@ -184,24 +188,48 @@ def run(
         padded = jax.tree_util.tree_unflatten(tree, pad_batch(leaves, pad, jnp))
         return _unpad(_per_device(lambda p: fn(p), jax.local_devices()[:n], batched)(padded), size, batched)
     _warn_one_core(size)
-    if not shape or (n == 1 and not fixed_block):
+    if not shape or (n == 1 and not fixed_block and (size <= block or not slabs)):
         return _compiled(fn, 1, batched, False)(params)
-    slab = n * block if (fixed_block or size > n * block) else -(-size // n) * n
+    if fixed_block or (n > 1 and size > n * block):
+        slab = n * block
+    elif size > block:  # one device, `slabs`: as even as `block` allows, so the padding stays small
+        slab = -(-size // -(-size // block))
+    else:
+        slab = -(-size // n) * n
     pad = -size % slab
-    host = pad_batch([np.asarray(x) for x in leaves], pad, np)
+    host = [np.asarray(x) for x in leaves]
+    order = _grouped(params, size) if size > slab else None
+    if order is not None:
+        host = [x[..., order] for x in host]
+    host = pad_batch(host, pad, np)
     program = _compiled(fn, n, batched, n > 1)
     place = (lambda t: _place(t, n)) if n > 1 else (lambda t: t)
-    slabs = [
+    parts_in = [
         place(jax.tree_util.tree_unflatten(tree, [x[..., s : s + slab] for x in host]))
         for s in range(0, size + pad, slab)
     ]
     if n == 1:
-        parts = [program(x) for x in slabs]
+        parts = [program(x) for x in parts_in]
     else:
-        executable = compiled(program, slabs[0])  # outside the lock: another thread's programs may run meanwhile
+        executable = compiled(program, parts_in[0])  # outside the lock: another thread's programs may run meanwhile
         with EXCLUSIVE:
-            parts = jax.block_until_ready([executable(x) for x in slabs])
-    return jax.tree_util.tree_map(jax.device_put, _joined(jax.device_get(parts), size, batched))
+            parts = jax.block_until_ready([executable(x) for x in parts_in])
+    out = _joined(jax.device_get(parts), size, batched)
+    if order is not None:
+        back = np.argsort(order)
+        out = jax.tree_util.tree_map(lambda x, b: x[..., back] if b else x, out, batched(out))
+    return jax.tree_util.tree_map(jax.device_put, out)
+
+
+def _grouped(params, size: int):
+    """The order a batch of several slabs runs in: by body mass (stable), so that a slab holds
+    bodies of like mass. The sliding-mode step runs a piece's later parts for a whole slab when any
+    of its samples needs them, and bodies of like mass meet their events at like times; each
+    sample's answer does not depend on its neighbours, so the order changes no bit of it."""
+    mass = getattr(params, "M_b", None)
+    if mass is None or np.shape(mass)[-1:] != (size,):
+        return None
+    return np.argsort(np.asarray(mass).reshape(-1, size)[0], kind="stable")
 
 
 def _joined(parts, size, batched):

@@ -16,7 +16,7 @@ import numpy as np
 from coopjax import devices, objectives, scenarios, stability
 from coopjax.config import Config, check_every, record_size
 from coopjax.errors import InputError
-from coopjax.integration import ADJOINTS, Solution, Trajectory, batched_leaves, differentiate, integrate
+from coopjax.integration import ADJOINTS, INTEGRATORS, Solution, Trajectory, batched_leaves, differentiate, integrate
 from coopjax.objectives import mark_unusable
 from coopjax.params import Params, as_batched, is_traced
 
@@ -144,7 +144,12 @@ def simulate(
                 "(a larger every) or run a shorter T",
                 "every",
             )
-    solution = devices.run(Run(config, every, checkpoint, unroll, adjoint), batched, batched=batched_leaves)
+    solution = devices.run(
+        Run(config, every, checkpoint, unroll, adjoint),
+        batched,
+        batched=batched_leaves,
+        slabs=INTEGRATORS[config.method].batch_decisions,
+    )
     if mark:
         # No exception under a trace: a sample whose step is beyond its stability limit is marked as a
         # diverged one is (NaN metrics, NaN derivatives, finite False), never a number to trust.

@@ -84,6 +84,10 @@ class Integrator(abc.ABC):
     # (scenario, switch) -> the largest step measured to be within the accuracy tolerances of the
     # dt -> 0 limit (docs/model.md, "Step size"); None: no step tried reached them. Missing: not measured.
     converged_dt: ClassVar[Mapping[tuple[str, str], float | None]] = {}
+    # True: the step decides some of its work for its whole batch at once (the sliding-mode step runs
+    # a piece's later parts when any sample needs them), so a large batch runs faster cut into slabs
+    # of like samples, on one device too (`coopjax.devices.run`).
+    batch_decisions: ClassVar[bool] = False
 
     @abc.abstractmethod
     def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, Path | None]:

@@ -724,6 +724,7 @@ class Filippov(Integrator):
     )
     switches = ("hard",)
     default_for = ("hard",)
+    batch_decisions = True  # `lax.cond` on the slab's need for a piece's later parts (`step`)
     converged_dt = {
         ("carry", "hard"): 2e-3,  # 16 of 16 samples, at 2e-3 and every finer step
         ("paper", "hard"): 1e-3,  # no sliding: forces within 1e-3 N of rk4 at 1e-4
