@@ -50,7 +50,6 @@ def throughput(Bs, dtypes, devices, repeats, T):
 
     import coopjax as cj
     from coopjax import devices as dispatch
-    from coopjax.integration import INTEGRATORS
     from coopjax.simulation import metrics_of
 
     rows = []
@@ -61,8 +60,7 @@ def throughput(Bs, dtypes, devices, repeats, T):
         params = make_batch(B, dtype)
         used = devices
         # As `simulate` runs it (`coopjax.devices.run`): each device its own slice, in blocks.
-        slabs = INTEGRATORS[config.method].batch_decisions  # as `simulate` cuts the batch
-        compiled = lambda p: dispatch.run(metrics_of(config), p, slabs=slabs)
+        compiled = lambda p: dispatch.run(metrics_of(config), p)  # as `simulate` cuts the batch
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(params))  # compiles, then runs once
         first = time.perf_counter() - t0

@@ -10,6 +10,7 @@ parameter value does not.
 from __future__ import annotations
 
 import dataclasses
+import math
 import json
 
 import jax
@@ -20,13 +21,66 @@ from coopjax import model, objectives, scenarios
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS, default_for
 from coopjax.params import Params, check_positive, resolve_dtype
+from coopjax.traced import is_tracer
 
 MAX_STEPS = 2**31 - 1  # a 32-bit step counter
 
 
-def setting(default, help: str, flag: str | None = None, choices=None):
-    """A field of `Config` with its command-line flag and help (choices: a callable giving the names)."""
-    return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices))
+def setting(
+    default,
+    help: str,
+    flag: str | None = None,
+    choices=None,
+    kind: type | None = None,
+    key: str | None = None,
+    unit: str = "",
+    check=None,
+):
+    """A declared setting: a dataclass field whose metadata every front end reads, so that a setting
+    is declared once (`Config`, a tuner's settings, `tuning.Problem`, a session's options).
+
+    Args:
+      default: its default.
+      help: one line for a flag's help and a file's comment.
+      flag: its command-line flag (None: not on the command line).
+      choices: a closed set of values, or a callable giving it.
+      kind: the type of its value where the default does not say it (None for a default of None).
+      key: where a file states it (`tuning.Problem`: "TABLE.KEY" or a top-level key).
+      unit: the unit its value is in (SI; a display may convert).
+      check: `check(value) -> str | None`: what is wrong with a value of the right kind.
+    """
+    metadata = dict(help=help, flag=flag, choices=choices, kind=kind, key=key, unit=unit, check=check)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def choices_of(field: dataclasses.Field) -> tuple | None:
+    """A setting's closed set of values (None: open)."""
+    choices = field.metadata.get("choices")
+    return tuple(choices()) if callable(choices) else choices
+
+
+def check_setting(field: dataclasses.Field, value) -> None:
+    """A declared scalar setting's value: its kind, its choices and its check, or one `InputError`
+    naming it. Booleans are not numbers here, and whole numbers are numbers of a float setting."""
+    kind, name = field.metadata["kind"], field.name
+    if value is None and field.default is None:
+        return
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    ok = {
+        bool: isinstance(value, (bool, np.bool_)),
+        int: real and float(value).is_integer() and not isinstance(value, (float, np.floating)),
+        float: real and math.isfinite(float(value)),
+        str: isinstance(value, str),
+    }[kind]
+    what = {bool: "true or false", int: "a whole number", float: "a finite number", str: "a name"}[kind]
+    if not ok:
+        raise InputError(f"{name} is {value!r}: expected {what}", name)
+    choices = choices_of(field)
+    if choices and value not in choices:
+        raise InputError(f"{name} must be one of {', '.join(choices)}, not {value!r}", name)
+    problem = field.metadata["check"](value) if field.metadata["check"] else None
+    if problem:
+        raise InputError(f"{name} is {value!r}: {problem}", name)
 
 
 def _number(name: str, value):
@@ -36,7 +90,7 @@ def _number(name: str, value):
         raise InputError(f"{name} must be a number, got {value!r} (a {type(value).__name__})", name)
     if isinstance(value, (int, float, np.integer, np.floating)):
         return float(value)
-    if isinstance(value, jax.core.Tracer):
+    if is_tracer(value):
         raise InputError(
             f"{name} is traced (under jit, grad or vmap): it sets the number of steps, so it must be a concrete "
             "number; pass it as a static argument",

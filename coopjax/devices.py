@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax.errors import InputError
+from coopjax.traced import is_tracer
 
 LARGE_BATCH = 1024  # samples: below this, one core is not worth a warning
 # Samples per device per dispatch when a batch runs over several devices: the step's working set
@@ -154,7 +155,6 @@ def run(
     batched=_all_batched,
     block: int = BLOCK,
     fixed_block: bool = False,
-    slabs: bool = False,
     shard_traced: bool = False,
     devices: int | None = None,
 ):
@@ -165,13 +165,14 @@ def run(
       batch smaller than that is one slab padded to a multiple of the device count (with
       `fixed_block`, every slab is `devices x block`, so the compiled program never depends on the
       batch size: the sweeps' tables are bit-identical whatever their chunking). The padding repeats
-      the last sample, and is dropped from the results. A batch of several slabs runs in order of
-      body mass (`_grouped`) and comes back in the caller's order.
+      the last sample, and is dropped from the results. A batch of several slabs runs in the order
+      `fn.batch_order(params)` gives, where `fn` has one (an integrator's: like samples together),
+      and comes back in the caller's order.
     - A traced batch (under the caller's `jit` or `grad`) runs as `fn` in the caller's program, or,
       with `shard_traced`, padded and split over the devices inside it.
-    - With one device, `fn` is jitted (concrete) or called (traced) as it is; with `slabs` (for a
-      step that decides work per batch, `Integrator.batch_decisions`), a concrete batch larger than
-      `block` is cut into equal slabs of at most `block`, as on several devices.
+    - With one device, `fn` is jitted (concrete) or called (traced) as it is; where `fn` orders its
+      batch (a step that decides work per batch, `Integrator.batch_order`), a concrete batch larger
+      than `block` is cut into equal slabs of at most `block`, as on several devices.
 
     `fn` must be hashable (it keys the cache of compiled programs) and map a batch to a pytree
     whose leaves, where `batched(out)` says so, carry the batch as their last axis.
@@ -180,7 +181,7 @@ def run(
     shape = np.shape(leaves[0])[-1:] if leaves and np.ndim(leaves[0]) else ()
     size = int(shape[0]) if shape else 1
     n = devices or jax.local_device_count()
-    traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
+    traced = any(is_tracer(x) for x in leaves)
     if traced:
         if not (shard_traced and n > 1 and shape):
             return fn(params)
@@ -188,6 +189,9 @@ def run(
         padded = jax.tree_util.tree_unflatten(tree, pad_batch(leaves, pad, jnp))
         return _unpad(_per_device(lambda p: fn(p), jax.local_devices()[:n], batched)(padded), size, batched)
     _warn_one_core(size)
+    batch_order = getattr(fn, "batch_order", None)  # the integrator's, where it decides work per batch
+    ordered = batch_order(params) if batch_order is not None and shape else None
+    slabs = ordered is not None
     if not shape or (n == 1 and not fixed_block and (size <= block or not slabs)):
         return _compiled(fn, 1, batched, False)(params)
     if fixed_block or (n > 1 and size > n * block):
@@ -198,7 +202,7 @@ def run(
         slab = -(-size // n) * n
     pad = -size % slab
     host = [np.asarray(x) for x in leaves]
-    order = _grouped(params, size) if size > slab else None
+    order = ordered if size > slab else None
     if order is not None:
         host = [x[..., order] for x in host]
     host = pad_batch(host, pad, np)
@@ -219,17 +223,6 @@ def run(
         back = np.argsort(order)
         out = jax.tree_util.tree_map(lambda x, b: x[..., back] if b else x, out, batched(out))
     return jax.tree_util.tree_map(jax.device_put, out)
-
-
-def _grouped(params, size: int):
-    """The order a batch of several slabs runs in: by body mass (stable), so that a slab holds
-    bodies of like mass. The sliding-mode step runs a piece's later parts for a whole slab when any
-    of its samples needs them, and bodies of like mass meet their events at like times; each
-    sample's answer does not depend on its neighbours, so the order changes no bit of it."""
-    mass = getattr(params, "M_b", None)
-    if mass is None or np.shape(mass)[-1:] != (size,):
-        return None
-    return np.argsort(np.asarray(mass).reshape(-1, size)[0], kind="stable")
 
 
 def _joined(parts, size, batched):

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax.errors import InputError
+from coopjax.traced import is_tracer
 
 
 class Spec(NamedTuple):
@@ -211,7 +212,7 @@ def _suggest(name: str, names=None) -> str:
 
 def _as_value(name, value):
     """A scalar or a 1-D array of numbers (a traced value passes as it is)."""
-    if _is_tracer(value):
+    if is_tracer(value):
         return value
     if isinstance(value, (str, bytes, dict, set)) or value is None:
         raise InputError(f"{name}: expected a number or a 1-D array of numbers, got {value!r}", name)
@@ -264,30 +265,22 @@ def make_params(base: Params | None = None, dtype=None, **values) -> Params:
             return x
         if len(batch) and np.ndim(x) == (1 if per_robot else 0):
             x = x[..., None]
-        return (jnp if _is_tracer(x) else np).broadcast_to(x, target)
+        return (jnp if is_tracer(x) else np).broadcast_to(x, target)
 
     for n in PARAMETERS:
         leaves[n] = widen(leaves[n], PARAMETERS[n].per_robot)
     # Shared names first, then per-robot ones: `K_GP_L` beats `K_GP` in any order.
     for n, robot, value in shared + specific:
-        value = value if np.ndim(value) == len(batch) else (jnp if _is_tracer(value) else np).broadcast_to(value, batch)
+        value = value if np.ndim(value) == len(batch) else (jnp if is_tracer(value) else np).broadcast_to(value, batch)
         if PARAMETERS[n].per_robot:
             rows = [value if robot in (None, r) else leaves[n][i] for i, r in enumerate(ROBOTS)]
-            leaves[n] = (jnp if any(map(_is_tracer, rows)) else np).stack(rows)
+            leaves[n] = (jnp if any(map(is_tracer, rows)) else np).stack(rows)
         else:
             leaves[n] = value
 
     params = Params({n: jnp.asarray(v, dtype) for n, v in leaves.items()})
     validate(params)
     return params
-
-
-def _is_tracer(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def is_traced(tree) -> bool:
-    return any(_is_tracer(x) for x in jax.tree_util.tree_leaves(tree))
 
 
 def validate(params: Params) -> None:
@@ -299,7 +292,7 @@ def validate(params: Params) -> None:
         if n not in params.names:
             raise InputError(f"these Params have no {n} (made before it was declared?): rebuild them with make_params")
         leaf = getattr(params, n)
-        if _is_tracer(leaf):
+        if is_tracer(leaf):
             continue
         x = np.asarray(leaf)
         where = _where(n, x, spec.per_robot)

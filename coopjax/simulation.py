@@ -11,6 +11,7 @@ import warnings
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from coopjax import devices, objectives, scenarios, stability
@@ -18,7 +19,9 @@ from coopjax.config import Config, check_every, record_size
 from coopjax.errors import InputError
 from coopjax.integration import ADJOINTS, INTEGRATORS, Solution, Trajectory, batched_leaves, differentiate, integrate
 from coopjax.objectives import mark_unusable
-from coopjax.params import Params, as_batched, is_traced
+from coopjax.status import Status
+from coopjax.params import Params, as_batched
+from coopjax.traced import differentiated, is_traced
 
 
 class Run(NamedTuple):
@@ -37,6 +40,10 @@ class Run(NamedTuple):
     def __call__(self, params: Params) -> Solution:
         return differentiate(self._integrate, params, batched_leaves, self.adjoint)
 
+    def batch_order(self, params: Params):
+        """The integrator's order for a concrete batch (`coopjax.devices.run` asks)."""
+        return INTEGRATORS[self.config.method].batch_order(params)
+
     def _integrate(self, params: Params) -> Solution:
         return integrate(
             params, self.config, self.metric_set(), every=self.every, checkpoint=self.checkpoint, unroll=self.unroll
@@ -53,14 +60,12 @@ class MetricsOf(NamedTuple):
     def __call__(self, params: Params):
         return Run(self.config, checkpoint=self.checkpoint, adjoint=self.adjoint)(params).metrics
 
+    def batch_order(self, params: Params):
+        return INTEGRATORS[self.config.method].batch_order(params)
+
 
 def metrics_of(config: Config, checkpoint: bool | str = True, adjoint: str = "auto") -> MetricsOf:
     return MetricsOf(config, checkpoint, adjoint)
-
-
-def _differentiated(params: Params) -> bool:
-    """Whether jvp, grad or linearize is tracing these parameters (vmap and jit are fine)."""
-    return any(any(s in type(x).__name__ for s in ("JVP", "Linearize")) for x in jax.tree_util.tree_leaves(params))
 
 
 def memory_limit() -> int:
@@ -108,7 +113,9 @@ def simulate(
       **settings: any `Config` field, e.g. `switch="smooth"`, `integrator="rk4"`, `dt=2e-3`, `T=1.0`.
 
     Returns a `Solution`. Bad static input raises InputError before anything is traced; a sample
-    that diverges is flagged in `metrics.finite` and `metrics.t_diverged` and never raises.
+    that diverges is flagged and never raises: `status` says why a sample's metrics are not an
+    answer (`coopjax.status.Status`: diverged, or, where marked, an unstable loop or a step beyond
+    its limit), `metrics.finite` is `status == ok`, and `metrics.t_diverged` says when it blew up.
     """
     if not isinstance(params, Params):
         raise InputError(f"params must be a Params from make_params, got {type(params).__name__}", "params")
@@ -121,7 +128,7 @@ def simulate(
     if isinstance(unroll, bool) or not isinstance(unroll, (int, np.integer)) or unroll < 1:
         raise InputError(f"unroll is {unroll!r}: a whole number, at least 1", "unroll")
     params = config.cast(params)
-    if config.switch == "hard" and config.method == "rk4" and _differentiated(params):
+    if config.switch == "hard" and config.method == "rk4" and differentiated(params):
         warnings.warn(
             "differentiating the hard switch under plain RK4 differentiates its chatter across F = F_lim: "
             "the derivatives are noise (often NaN or huge). Use integrator='filippov' (the default for the hard "
@@ -148,13 +155,15 @@ def simulate(
         Run(config, every, checkpoint, unroll, adjoint),
         batched,
         batched=batched_leaves,
-        slabs=INTEGRATORS[config.method].batch_decisions,
     )
+    status = jnp.where(solution.metrics.finite, Status.OK, Status.DIVERGED).astype(jnp.int32)
     if mark:
         # No exception under a trace: a sample whose step is beyond its stability limit is marked as a
         # diverged one is (NaN metrics, NaN derivatives, finite False), never a number to trust.
-        bad = stability.beyond_limit(batched, config)
-        solution = solution._replace(metrics=mark_unusable(solution.metrics, bad))
+        limits = stability.step_status(batched, config)
+        status = jnp.where(limits != Status.OK, limits, status)
+        solution = solution._replace(metrics=mark_unusable(solution.metrics, limits != Status.OK))
+    solution = solution._replace(status=status)
     if added:
         squeeze = lambda x: x[..., 0]
         trajectory = solution.trajectory
@@ -162,7 +171,12 @@ def simulate(
             trajectory = Trajectory(
                 trajectory.t, squeeze(trajectory.y), jax.tree_util.tree_map(squeeze, trajectory.aux)
             )
-        solution = Solution(jax.tree_util.tree_map(squeeze, solution.metrics), squeeze(solution.y_final), trajectory)
+        solution = Solution(
+            jax.tree_util.tree_map(squeeze, solution.metrics),
+            squeeze(solution.y_final),
+            trajectory,
+            squeeze(solution.status),
+        )
     return solution
 
 

@@ -24,8 +24,10 @@ import numpy as np
 
 from coopjax import devices, model, scenarios
 from coopjax.errors import InputError
+from coopjax.status import Status
 from coopjax.integration import INTEGRATORS, max_stable_dt, rk4_amplification
-from coopjax.params import Params, as_batched, is_traced
+from coopjax.params import Params, as_batched
+from coopjax.traced import is_traced
 
 MIN_PRACTICAL_DT = 1e-9  # s: a loop that needs a finer step than this has a parameter wrong
 ULPS_ABOVE_F_LIM = 64  # the switch-on operating point's force, in units of round-off above F_lim
@@ -89,18 +91,26 @@ def growing_mode(eigenvalues):
     return xp.where(growth > 1e-9 * scale + 1e-9, growth, 0.0)
 
 
-def beyond_limit(params: Params, config) -> jax.Array:
-    """Per sample (traceable: under jit, vmap and differentiation), whether config.dt is beyond the
-    integrator's stability limit or the loop itself is unstable. The linearisation is traced (its
-    inputs without derivatives), and so are the eigenvalues, in float64 whatever the run uses, as
-    `check_step` takes them: no host callback, so the program that contains it can be kept in JAX's
-    persistent compilation cache (a program with a callback never is)."""
+def step_status(params: Params, config) -> jax.Array:
+    """Per sample (traceable: under jit, vmap and differentiation), `Status.UNSTABLE_LOOP` where the
+    loop itself is unstable, `STEP_BEYOND_LIMIT` where config.dt is beyond the integrator's
+    stability limit, else `OK`. The linearisation is traced (its inputs without derivatives), and so
+    are the eigenvalues, in float64 whatever the run uses, as `check_step` takes them: no host
+    callback, so the program that contains it can be kept in JAX's persistent compilation cache (a
+    program with a callback never is)."""
     batched, _ = as_batched(jax.tree_util.tree_map(jax.lax.stop_gradient, params))
     J = _jacobians(batched, config.scenario, config.options)
     with jax.enable_x64(True):
         eig = jnp.linalg.eigvals(J.astype(jnp.float64).reshape((-1,) + J.shape[-3:]))
-        bad = (growing_mode(eig) > 0) | (config.dt > INTEGRATORS[config.method].stable_dt(eig))
-    return bad.reshape(params.batch_shape)
+        unstable = growing_mode(eig) > 0
+        beyond = config.dt > INTEGRATORS[config.method].stable_dt(eig)
+    code = jnp.where(unstable, Status.UNSTABLE_LOOP, jnp.where(beyond, Status.STEP_BEYOND_LIMIT, Status.OK))
+    return code.astype(jnp.int32).reshape(params.batch_shape)
+
+
+def beyond_limit(params: Params, config) -> jax.Array:
+    """Per sample, whether the loop is unstable or config.dt beyond its limit (`step_status`)."""
+    return step_status(params, config) != Status.OK
 
 
 def check_step(params: Params, config) -> None:

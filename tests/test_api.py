@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import coopjax as cj
+from coopjax.status import Status
 
 
 def test_float32_runs_in_float32_and_tracks_float64():
@@ -143,6 +144,10 @@ def test_an_unstable_step_is_marked_not_raised_under_a_trace_and_its_derivative_
     assert np.isfinite(float(slopes[0])) and np.isnan(float(slopes[1]))
     marked = run(jnp.array([0.5, 50.0]), check_dt="mark")
     assert marked.finite.tolist() == [True, False]
+    # The solution says why: the one status vocabulary of sweeps and the judge.
+    solution = cj.simulate(cj.make_params(K_GP=jnp.array([0.5, 50.0])), "paper", dt=2e-3, T=0.06, check_dt="mark")
+    assert [Status(int(s)) for s in solution.status] == [Status.OK, Status.STEP_BEYOND_LIMIT]
+    assert solution.metrics.finite.tolist() == (np.asarray(solution.status) == Status.OK).tolist()
     assert np.isnan(float(marked.peak_grip[1])) and np.isfinite(float(marked.peak_grip[0]))
 
 

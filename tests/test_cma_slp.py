@@ -47,8 +47,8 @@ def test_resume_replays_to_the_same_state(tmp_path):
     budget = driver.Budget(trajectories=600)
     whole = solve(tuner, STARTS, Analytic(), budget=budget)
     path = str(tmp_path / "run.ckpt")
-    solve(tuner, STARTS, Analytic(), checkpoint=path, budget=driver.Budget(trajectories=250))
-    resumed = solve(tuner, STARTS, Analytic(), checkpoint=path, resume=True, budget=budget)
+    solve(tuner, STARTS, Analytic(), recorder=driver.Checkpoint(path), budget=driver.Budget(trajectories=250))
+    resumed = solve(tuner, STARTS, Analytic(), recorder=driver.Checkpoint(path, resume=True), budget=budget)
     assert resumed.evaluations == whole.evaluations
     assert resumed.state.history == whole.state.history
     for a, b in zip(resumed.tuner.candidates(resumed.state), whole.tuner.candidates(whole.state)):

@@ -3,7 +3,6 @@ registered from this file alone, run through `simulate`, a sweep (Python and the
 the race, without touching a library file (docs/architecture.md, "How to add")."""
 
 import dataclasses
-import json
 
 import jax.numpy as jnp
 import numpy as np
@@ -13,8 +12,10 @@ import coopjax as cj
 from coopjax import cli, integration, model, objectives, params, scenarios, stability, sweeps
 from coopjax.integration.plain_rk4 import PlainRK4
 from coopjax.scenarios import Clock
-from tuning import race
+from tuning import cli as tune_cli
 from tuning import problem as pb
+from tuning import session
+from tuning.studies import race
 from tuning.tuners import Query, Tuner
 from tuning.tuners import register as register_tuner
 from tuning.tuners import setting
@@ -221,43 +222,31 @@ def test_an_incomplete_extension_is_refused_when_it_is_registered():
     assert "no observe" not in integration.INTEGRATORS and "no candidates" not in TUNERS
 
 
-@pytest.mark.slow  # the suite's time (25 s); registration and its checks stay in CI (above)
 def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_dir, capsys):
-    small = [*SMALL_TUNE, "--quiet"]
-    code = cli.main(["tune", "--method", "best start", "--pick", "1", *small, "--out", "best.json"])
-    out, err = capsys.readouterr()
-    result = json.loads((fresh_dir / "best.json").read_text())
-    assert code == (0 if result["holds"] else 3), out + err  # 3: the answer misses a requirement
-    assert result["method"] == "2 starts" and set(result["params"]) == set(pb.GAINS)
-    assert result["config"]["tuner"] == "best start" and result["config"]["tuner_settings"] == {"pick": 1}
-    assert (fresh_dir / "best_history.png").exists() and (fresh_dir / "best_traces.png").exists()
     # Its flag is its own: another method refuses it, in one line, before any work.
-    code = cli.main(["tune", "--pick", "1", *small, "--out", "other.json"])
+    code = cli.main(["tune", "--pick", "1", *SMALL_TUNE, "--out", "other.json"])
     err = capsys.readouterr().err
     assert code == 2 and "--pick sets the best start tuner" in err and len(err.strip().splitlines()) == 1
     parser = cli.build_parser()
     text = next(a for a in parser._actions if a.dest == "command").choices["tune"].format_help()
     assert "best start" in text and "--pick" in text
+    args = parser.parse_args(["tune", "--method", "best start", "--pick", "1"])
+    assert tune_cli.make_tuner(args) == BestStart(pick=1)
 
 
-@pytest.mark.slow
-def test_a_new_tuner_runs_through_the_race(registered):
+def test_a_new_tuner_runs_through_a_session_and_the_race(registered):
     problem = pb.Problem(
         names=pb.GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False
     )
-    starts = np.log(np.asarray([[0.054, 0.078, 2.93, 1224.0], [0.5, 0.1, 1.25, 600.0]]))
-    # A value-only reference keeps the test to value compiles; the gradient tuner races in test_tuning_cli.
-    tuners = {"random search": RandomSearch(block=2, generations=1), "best start": BestStart()}
-    result = race.run(
-        tuners,
-        "random search",
-        problem,
-        cj.make_params(),
-        lambda seed: starts,
-        seeds=[0],
-        log=lambda s: None,
-        judge_dt=2e-3,
-    )
+    options = session.Options(starts=2, held_out=2, judge_dt=2e-3)
+    prepared = session.prepare(problem, BestStart(pick=1), options)
+    tuned = session.run(prepared)
+    assert set(tuned.params) == set(pb.GAINS) and tuned.result.evaluations == 1
+    assert tuned.params in [pb.from_log(s, pb.GAINS) for s in prepared.starts()]  # the start it picked
+    # A value-only reference keeps the race to value compiles.
+    sessions = {"random search": session.prepare(problem, RandomSearch(block=2, generations=1), options)}
+    sessions["best start"] = prepared
+    result = race.run(sessions, "random search", seeds=[0], log=lambda s: None)
     row = result["per_seed"][0]
     assert row["evaluations"]["best start"] == 2 and row["chosen"]["best start"] is not None
     assert result["tuners"] == ["random search", "best start"]

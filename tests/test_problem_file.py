@@ -103,7 +103,7 @@ def test_a_flag_of_the_default_problem_contradicts_a_problem_file(tmp_path, caps
 def test_show_problem_prints_an_editable_file_and_compiles_nothing(tmp_path):
     # A fresh process, with JAX logging every compilation: there must be none.
     run = subprocess.run(
-        [sys.executable, "-m", "coopjax.cli", "tune", "--show-problem", "--params", "gains", "--w-lag", "2"],
+        [sys.executable, "-m", "coopjax.cli", "tune", "--show-problem", "--params", "gains", "--w-lag", "2000"],
         capture_output=True,
         text=True,
         cwd=tmp_path,
@@ -111,6 +111,7 @@ def test_show_problem_prints_an_editable_file_and_compiles_nothing(tmp_path):
     )
     assert run.returncode == 0 and "Compiling" not in run.stderr, run.stderr
     problem = Problem.from_toml(_file(tmp_path, run.stdout))
+    # One unit per quantity: the flag's weight is the file's, N per m of lag.
     assert problem.names == ("K_GP", "K_GI", "tau", "G_e") and problem.minimise[1].weight == 2000.0
     assert os.listdir(tmp_path) == ["problem.toml"]
 

@@ -196,9 +196,9 @@ def test_resume_replays_to_the_same_iterates(tmp_path, screened, stop):
     tuner = ScreenSLP(screen=screened, local=2, steps=8)
     whole = solve(tuner, starts, Analytic())
     path = str(tmp_path / "run.ckpt")
-    first = solve(tuner, starts, Analytic(), checkpoint=path, budget=driver.Budget(trajectories=stop))
+    first = solve(tuner, starts, Analytic(), recorder=driver.Checkpoint(path), budget=driver.Budget(trajectories=stop))
     assert (first.state.phase == "screen") == (screened == 40)  # stopped among the generations, or after
-    resumed = solve(tuner, starts, Analytic(), checkpoint=path, resume=True)
+    resumed = solve(tuner, starts, Analytic(), recorder=driver.Checkpoint(path, resume=True))
     assert resumed.evaluations == whole.evaluations
     assert np.array_equal(resumed.state.theta, whole.state.theta)
     assert resumed.state.history == whole.state.history

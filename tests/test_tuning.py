@@ -90,17 +90,24 @@ def test_k_starts_in_one_batch_equal_k_single_runs(point):
 
 @pytest.mark.slow
 def test_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
-    whole = driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=str(tmp_path / "whole.ckpt"))
+    whole = driver.run(TUNER, PROBLEM, BASE, THETA, 0, recorder=driver.Checkpoint(str(tmp_path / "whole.ckpt")))
     cut = str(tmp_path / "cut.ckpt")
-    first = driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=cut, budget=driver.Budget(trajectories=2 * 2 * 2))
+    first = driver.run(
+        TUNER, PROBLEM, BASE, THETA, 0, recorder=driver.Checkpoint(cut), budget=driver.Budget(trajectories=2 * 2 * 2)
+    )
     assert first.state.step == 2
     with pytest.raises(cj.InputError, match="resume it"):
-        driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=cut)  # never silently restarts
+        driver.run(TUNER, PROBLEM, BASE, THETA, 0, recorder=driver.Checkpoint(cut))  # never silently restarts
     with pytest.raises(cj.InputError, match="other options"):
         driver.run(
-            AdamAL(steps=5, mode="forward", learning_rate=0.2), PROBLEM, BASE, THETA, 0, checkpoint=cut, resume=True
+            AdamAL(steps=5, mode="forward", learning_rate=0.2),
+            PROBLEM,
+            BASE,
+            THETA,
+            0,
+            recorder=driver.Checkpoint(cut, resume=True),
         )
-    resumed = driver.run(TUNER, PROBLEM, BASE, THETA, 0, checkpoint=cut, resume=True)
+    resumed = driver.run(TUNER, PROBLEM, BASE, THETA, 0, recorder=driver.Checkpoint(cut, resume=True))
     assert resumed.state.step == whole.state.step == 4
     for field in ("theta", "good", "scale", "best_theta", "best_f"):
         np.testing.assert_array_equal(getattr(resumed.state, field), getattr(whole.state, field))

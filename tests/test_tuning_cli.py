@@ -4,7 +4,8 @@ so that the two test workers share the tuning tests evenly.)"""
 import pytest
 
 from coopjax import cli
-from tuning import race
+from tuning import driver, session
+from tuning.studies import race
 from tuning.tuners import TUNERS
 
 from test_tuning import BASE, PROBLEM, THETA, TUNER
@@ -21,7 +22,9 @@ SMALL_TUNE = (
 @pytest.mark.slow  # every registered tuner on one clock: CMA-ES and random search are exercised here
 def test_the_race_gives_each_tuner_the_reference_clock_and_validates_their_choices():
     tuners = {name: (TUNER if name == TUNER.name else cls()) for name, cls in TUNERS.items()}
-    result = race.run(tuners, TUNER.name, PROBLEM, BASE, lambda seed: THETA, seeds=[3], log=lambda s: None)
+    options = session.Options(starts=len(THETA))
+    sessions = {name: session.prepare(PROBLEM, t, options, BASE, driver.Budget(1)) for name, t in tuners.items()}
+    result = race.run(sessions, TUNER.name, seeds=[3], log=lambda s: None)
     for row in result["per_seed"]:
         assert row["evaluations"][TUNER.name] == TUNER.steps * len(THETA)
         for name in TUNERS:

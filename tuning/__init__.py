@@ -5,6 +5,7 @@ The public API:
     Problem, Objective, Requirement, Uncertain   a tuning problem as data (`Problem.from_toml` reads a file)
     terms(theta, base, problem, draws)           its differentiable objective and constraints, for a batch
     tune(problem, method, ...)                   tune it with any registered tuner (`TUNERS`), select, judge
+    prepare(problem, tuner, options), run(...)   the same as a session: checked first, then run
     judge(values, draws, problem, ...)           a parameter set's verdict, requirement by requirement
     to_log, from_log                             a parameter dict <-> the log-values tuners work in
 
@@ -13,20 +14,24 @@ The modules:
     design.py       where the uncertain parameters are drawn: training, validation, held-out
     problem_file.py problem files (TOML): read, with errors that name the line; written
     problem.py      the problem, its terms (`terms`), the starting points
+    shorthands.py   the default problem's flags: its settings' own, and aliases
     judging.py      how an answer is judged (`judge`) and selected (`select`)
     constrained.py  an augmented Lagrangian on top of optax
     tuners/         the tuner interface and registry; one file per tuner (screen-SLP, Adam-AL, CMA-ES, ...)
     evaluate.py     the evaluator every tuner shares (values, Jacobians, gradients; compile kept apart)
-    driver.py       ask / evaluate / tell on a clock and a budget; checkpoints and resume by replay
-    api.py          `tune`
-    race.py         `--compare`: every registered tuner on one clock over seeds
+    driver.py       ask / evaluate / tell on a clock and a budget; recorders (checkpoints) and resume by replay
+    session.py      a session: `prepare` (every check), `run` (the driver, the selection, the judge)
+    api.py          `tune`: a session in one call
+    studies/        sessions by the many: the race (`--compare`) and the Pareto front (`--pareto`)
     plots.py        before/after traces, convergence, the race, the Pareto front
-    cli.py          `coopjax tune` (registered with `coopjax` as an entry point)
+    report.py       a run's table, result file, figures and exit code
+    cli.py          `coopjax tune`: flags in, a session run, its report out (an entry point of `coopjax`)
 
 Imports run one way: `tuning` uses `coopjax`; `coopjax` never imports `tuning`.
 """
 
-from tuning.api import Tuned, tune
+from tuning.api import tune
+from tuning.session import Options, Session, Tuned, prepare, run
 from tuning.design import Uncertain
 from tuning.driver import Budget
 from tuning.judging import Verdict, judge, select
@@ -35,6 +40,10 @@ from tuning.tuners import TUNERS
 
 __all__ = [
     "Budget",
+    "Options",
+    "Session",
+    "prepare",
+    "run",
     "Objective",
     "Problem",
     "Requirement",

@@ -97,8 +97,7 @@ def run(
     seed: int = 0,
     *,
     budget: Budget = Budget(),
-    checkpoint: str | None = None,
-    resume: bool = False,
+    recorder: "Checkpoint | None" = None,
     progress: bool = False,
     total: int | None = None,
     evaluator: Evaluator | None = None,
@@ -106,9 +105,9 @@ def run(
 ) -> Result:
     """Run (or resume) one tuner until it finishes or the budget is spent.
 
-    With `checkpoint`, the log is saved atomically after every evaluation; `resume=True` continues
-    from it. `total` sizes the progress bar (a tuner's step count); `on_step(state, query, evaluation)`
-    is called after each live evaluation.
+    A `recorder` (`Checkpoint`) is given the log after every evaluation, and gives back the log of
+    an interrupted run to replay before going on. `total` sizes the progress bar (a tuner's step
+    count); `on_step(state, query, evaluation)` is called after each live evaluation.
     """
     if budget.seconds is None and budget.trajectories is None and not tuner.ends():
         # A run that cannot end would hang its caller (a study, a script): a budget comes first.
@@ -121,14 +120,14 @@ def run(
     evaluator.prepare(tuner.later_queries(state))
     record = Record.empty()
     elapsed, trajectories = 0.0, 0
-    if checkpoint and os.path.exists(checkpoint):
-        if not resume:
-            raise InputError(f"{checkpoint} holds an earlier tuning run: resume it, or delete it", "resume")
-        saved = load_checkpoint(checkpoint, ident)
+    saved = recorder.saved(ident) if recorder is not None else None
+    if saved is not None:
         for (query, evaluation), (wall, used) in zip(saved["log"], saved["clock"]):
             asked = tuner.ask(state)
             if asked is None or not _same(asked, query):
-                raise InputError(f"{checkpoint} does not replay with this code and these options: delete it", "resume")
+                raise InputError(
+                    f"{recorder.path} does not replay with this code and these options: delete it", "resume"
+                )
             # The tuner's own query goes on (the file keeps what identifies it, not its `weights`).
             state = tuner.tell(state, asked, evaluation)
             log.append((asked, evaluation))
@@ -153,13 +152,38 @@ def run(
         log.append((query, evaluation))
         clock.append((elapsed, trajectories))
         record.add(query, evaluation, elapsed, trajectories)
-        if checkpoint:
-            save_checkpoint(checkpoint, ident, log, clock)
+        if recorder is not None:
+            recorder.record(ident, log, clock)
         bar.update(1)
         if on_step is not None:
             on_step(state, query, evaluation)
     bar.close()
     return Result(tuner, state, record, elapsed, evaluator.compile_s, trajectories, len(log))
+
+
+class Checkpoint:
+    """A recorder that keeps a run's log in a file after every evaluation, and resumes from it.
+
+    `resume=False` refuses a file that is already there (a run is never silently restarted);
+    `resume=True` replays it. `discard` removes the file once the run's results are safe."""
+
+    def __init__(self, path: str, resume: bool = False):
+        self.path, self.resume = path, resume
+
+    def saved(self, ident: dict) -> dict | None:
+        """The log to replay (None: start afresh)."""
+        if not os.path.exists(self.path):
+            return None
+        if not self.resume:
+            raise InputError(f"{self.path} holds an earlier tuning run: resume it, or delete it", "resume")
+        return load_checkpoint(self.path, ident)
+
+    def record(self, ident: dict, log, clock) -> None:
+        save_checkpoint(self.path, ident, log, clock)
+
+    def discard(self) -> None:
+        if os.path.exists(self.path):
+            os.remove(self.path)
 
 
 def _same(a: Query, b: Query) -> bool:

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax import devices, scenarios
-from coopjax.config import Config
+from coopjax.config import Config, check_setting, setting
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS
 from coopjax.objectives import METRICS
@@ -197,21 +197,79 @@ class Problem:
 
     # The four gains of the paper alone cannot bring the worst peak under about 31 N while holding
     # the grip at 5 kg (docs/tuning.md); per-robot gains and the controller's impedance can.
-    names: tuple[str, ...] = GAINS_PER_ROBOT + IMPEDANCE
-    scenarios: tuple[str, ...] = ("carry",)
-    uncertain: tuple = DEFAULT_UNCERTAIN
-    minimise: tuple = DEFAULT_MINIMISE
-    require: tuple = DEFAULT_REQUIRE
-    bounds: tuple = ()
-    fixed: tuple = ()
-    n_draws: int = 8
-    jitter: bool = True
-    margin: float = 0.05
-    switch: str = "hard"
-    dt: float | None = None
-    aggregate: str = "smoothmax"
-    temperature: float = 0.5
-    cvar_alpha: float = 0.25
+    names: tuple[str, ...] = setting(
+        GAINS_PER_ROBOT + IMPEDANCE,
+        "the tuned parameters: gains (K_GP,K_GI,tau,G_e), per-robot (the 4 gains of each robot: 8), all "
+        "(per-robot + M_c,R_c,K_c,M_f,R_f,K_f: 14), or comma-separated names",
+        key="tune",
+    )
+    scenarios: tuple[str, ...] = setting(("carry",), "the registered scenarios every draw runs", key="scenario")
+    uncertain: tuple = setting(DEFAULT_UNCERTAIN, "boxes the answer must hold over", key="uncertain")
+    minimise: tuple = setting(DEFAULT_MINIMISE, "the objective's terms", key="minimise")
+    require: tuple = setting(DEFAULT_REQUIRE, "the requirements, each at every draw", key="require")
+    bounds: tuple = setting((), "search boxes of tuned names, replacing the defaults", key="bounds")
+    fixed: tuple = setting((), "parameters held at a value, besides Table 1's", key="fixed")
+    n_draws: int = setting(
+        8,
+        "training draws per step (screen-SLP: a grid, ends included; gradient: one per equal-probability "
+        "stratum, drawn afresh each step; with several uncertain parameters, besides the box's corners)",
+        "--train-masses",
+        kind=int,
+        key="training.n_draws",
+        check=lambda x: None if x >= 2 else "at least 2 (the range's two ends)",
+    )
+    jitter: bool = setting(
+        True,
+        "fresh training draws every step (the gradient tuner); false: a fixed design",
+        "--fixed-masses",
+        kind=bool,
+        key="training.jitter",
+    )
+    margin: float = setting(
+        0.05,
+        "training draws span the box widened by this share (selection by half of it)",
+        "--margin",
+        kind=float,
+        key="training.margin",
+        check=lambda x: None if 0 <= x <= 1 else "a share of the box: from 0 to 1",
+    )
+    switch: str = setting("hard", "the training model", "--switch", SWITCHES, str, "training.switch")
+    dt: float | None = setting(
+        None,
+        f"the training step (default: each scenario's coarsest converged step for hard, {SURROGATE_DT:g} for "
+        "the smooth surrogates)",
+        "--dt",
+        kind=float,
+        key="training.dt",
+        unit="s",
+        check=lambda x: None if x > 0 else "it must be positive",
+    )
+    aggregate: str = setting(
+        "smoothmax", "training's smooth worst case over the draws", "--aggregate", AGGREGATES, str, "training.aggregate"
+    )
+    temperature: float = setting(
+        0.5,
+        "softness of smoothmax",
+        "--temperature",
+        kind=float,
+        key="training.temperature",
+        unit="N",
+        check=lambda x: None if x > 0 else "it must be positive",
+    )
+    cvar_alpha: float = setting(
+        0.25,
+        "aggregate cvar: the worst share of draws averaged",
+        "--cvar-alpha",
+        kind=float,
+        key="training.cvar_alpha",
+        check=lambda x: None if 0 < x <= 1 else "it must be in (0, 1]",
+    )
+
+    @classmethod
+    def settings(cls, table: str | None = None) -> tuple[dataclasses.Field, ...]:
+        """The fields a file states in `table` ("training": `[training]` KEY = VALUE), or all of them."""
+        fields = dataclasses.fields(cls)
+        return fields if table is None else tuple(f for f in fields if f.metadata["key"].startswith(table + "."))
 
     def __post_init__(self):
         # Hashable, whatever the caller passed (lists from a file, arrays).
@@ -228,7 +286,7 @@ class Problem:
     def from_toml(cls, path: str, **overrides) -> "Problem":
         """Read a problem file (docs/tuning.md, "Problem files"); `overrides` replace fields. A bad
         file raises one `InputError` naming the file, the key and the line."""
-        fields, where = problem_file.read(path)
+        fields, where = problem_file.read(path, tuple(f.name for f in cls.settings("training")))
         if isinstance(fields.get("names"), str):
             fields["names"] = expand_params(fields["names"])
         try:
@@ -385,20 +443,8 @@ class Problem:
                     )
             elif not math.isfinite(r.bound):
                 raise InputError(f"require {r.metric}: the bound {r.bound!r} must be finite", "require")
-        if self.switch not in SWITCHES:
-            raise InputError(f"switch must be one of {', '.join(SWITCHES)}, not {self.switch!r}", "switch")
-        if self.aggregate not in AGGREGATES:
-            raise InputError(f"aggregate must be one of {', '.join(AGGREGATES)}, not {self.aggregate!r}", "aggregate")
-        if isinstance(self.n_draws, bool) or not isinstance(self.n_draws, (int, np.integer)) or self.n_draws < 2:
-            raise InputError(f"n_draws is {self.n_draws!r}: at least 2 (the range's two ends)", "n_draws")
-        if not (isinstance(self.margin, (int, float)) and math.isfinite(self.margin) and self.margin >= 0):
-            raise InputError(f"margin is {self.margin!r}: it must be finite and not negative", "margin")
-        if not (self.temperature > 0 and math.isfinite(self.temperature)):
-            raise InputError(f"temperature is {self.temperature:g}: it must be positive", "temperature")
-        if not 0 < self.cvar_alpha <= 1:
-            raise InputError(f"cvar_alpha is {self.cvar_alpha:g}: it must be in (0, 1]", "cvar_alpha")
-        if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
-            raise InputError(f"dt is {self.dt!r}: it must be positive", "dt")
+        for f in self.settings("training"):
+            check_setting(f, getattr(self, f.name))
         for c in self.configs:
             c.validate()
         return self

@@ -23,7 +23,6 @@ from coopjax.params import PARAMETERS, split_name
 from tuning import design
 
 TOP = ("scenario", "tune", "bounds", "fixed", "uncertain", "minimise", "require", "training")
-TRAINING = ("n_draws", "margin", "jitter", "switch", "dt", "aggregate", "temperature", "cvar_alpha")
 MINIMISE = ("metric", "over", "weight", "scenario")
 REQUIRE = ("metric", "at_least", "at_most", "scenario")
 
@@ -62,9 +61,10 @@ class _Where:
         return InputError(f"{self.path}{at}: {name + ': ' if name else ''}{message}", key or table or "problem")
 
 
-def read(path: str) -> tuple[dict, "_Where"]:
+def read(path: str, training: tuple[str, ...]) -> tuple[dict, "_Where"]:
     """A problem file's fields, as `Problem`'s keywords (types and names checked; the rest is
-    `Problem.validate`'s), and where its keys are (for `locate`)."""
+    `Problem.validate`'s), and where its keys are (for `locate`); `training` names the keys of
+    `[training]` (`Problem.settings("training")`)."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
@@ -78,10 +78,10 @@ def read(path: str) -> tuple[dict, "_Where"]:
     except tomllib.TOMLDecodeError as error:
         raise InputError(f"{path}: not valid TOML: {error}", "problem") from None
     where = _Where(path, text)
-    return parse(data, where), where
+    return parse(data, where, training), where
 
 
-def parse(data: dict, where: _Where) -> dict:
+def parse(data: dict, where: _Where, training: tuple[str, ...]) -> dict:
     """`Problem`'s keywords from a parsed file. `tune` stays as written (a shorthand is expanded by
     `Problem.from_toml`); `minimise` and `require` entries are plain tuples."""
     for key in data:
@@ -132,8 +132,8 @@ def parse(data: dict, where: _Where) -> dict:
     if "require" in data:
         fields["require"] = tuple(_requirement(e, i, where) for i, e in enumerate(_entries(data, "require", where)))
     for key, value in data.get("training", {}).items():
-        if key not in TRAINING:
-            raise where.error(f"unknown key; [training] has {', '.join(TRAINING)}", "training", key)
+        if key not in training:
+            raise where.error(f"unknown key; [training] has {', '.join(training)}", "training", key)
         fields[key] = value
     return fields
 
@@ -266,8 +266,8 @@ def dump(problem) -> str:
         if r.scenarios:
             lines.append(f"scenario = {_value(list(r.scenarios))}")
     lines += ["", "[training]"]
-    for name in TRAINING:
-        value = getattr(p, name)
+    for field in p.settings("training"):
+        value = getattr(p, field.name)
         if value is not None:
-            lines.append(f"{name} = {_value(value)}")
+            lines.append(f"{field.metadata['key'].split('.', 1)[1]} = {_value(value)}")
     return "\n".join(lines) + "\n"

@@ -10,7 +10,7 @@ import dataclasses
 import math
 import os
 
-from coopjax.config import Config
+from coopjax.config import Config, choices_of
 from coopjax.errors import InputError
 
 EXIT_FAILED = 1
@@ -47,7 +47,7 @@ def config_arguments(parser: argparse.ArgumentParser, defaults: dict | None = No
         default = defaults.get(f.name, f.default)
         text = f.metadata["help"]
         if f.metadata.get("choices"):
-            text += f"; one of: {', '.join(f.metadata['choices']())}"
+            text += f"; one of: {', '.join(choices_of(f))}"
         if default is not None:
             text += f" (default: {default:g})" if isinstance(default, float) else f" (default: {default})"
         kind = float if isinstance(f.default, float) or f.name in ("T", "gamma_min") else str

@@ -36,6 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
+from coopjax.traced import pulled_back
+
 ADJOINTS = ("auto", "forward", "reverse")
 # Above this many differentiated components, reverse mode through the loop is faster at run time
 # than the Jacobian (the sliding-mode step, 256 bodies, float32: 16.6 s by the Jacobian against
@@ -76,7 +78,7 @@ def _jvp(fn, batched, always, primals, tangents):
     values = tuple(leaves[i] for i in active)
     with_active = _replacing(fn, tree, leaves, active)
 
-    if not batch or not _pulled_back(dleaves) or (not always and sum(sizes) > MAX_FORWARD):
+    if not batch or not pulled_back(dleaves) or (not always and sum(sizes) > MAX_FORWARD):
         return jax.jvp(with_active, values, tuple(dleaves[i] for i in active))
 
     # One direction per component of every differentiated leaf, the same for every sample.
@@ -145,14 +147,6 @@ def _replacing(fn, tree, leaves, indices):
         return fn(jax.tree_util.tree_unflatten(tree, new))
 
     return at
-
-
-def _pulled_back(tangents) -> bool:
-    """Whether reverse mode (grad, vjp, linearize) is tracing the rule: JAX then evaluates it
-    partially, and its tangents are the unknowns of that trace. Under forward mode (jvp, jacfwd)
-    the plain tangent costs one direction, not one per component. Either answer is exact: a miss
-    only costs time."""
-    return any(type(d).__name__ == "JaxprTracer" for d in tangents)
 
 
 _run.defjvp(_jvp, symbolic_zeros=True)

@@ -84,10 +84,6 @@ class Integrator(abc.ABC):
     # (scenario, switch) -> the largest step measured to be within the accuracy tolerances of the
     # dt -> 0 limit (docs/model.md, "Step size"); None: no step tried reached them. Missing: not measured.
     converged_dt: ClassVar[Mapping[tuple[str, str], float | None]] = {}
-    # True: the step decides some of its work for its whole batch at once (the sliding-mode step runs
-    # a piece's later parts when any sample needs them), so a large batch runs faster cut into slabs
-    # of like samples, on one device too (`coopjax.devices.run`).
-    batch_decisions: ClassVar[bool] = False
 
     @abc.abstractmethod
     def step(self, params, y, t, dt, scenario, options) -> tuple[jax.Array, model.Aux, Path | None]:
@@ -110,6 +106,14 @@ class Integrator(abc.ABC):
         """Largest stable dt per sample for the linearised loop's eigenvalues (B, ...): NumPy, or JAX
         under a trace (`simulate` marks samples beyond it inside the traced program)."""
         return max_stable_dt(eigenvalues, type(self).amplification)
+
+    def batch_order(self, params) -> np.ndarray | None:
+        """For a step that decides some of its work for its whole batch at once (the sliding-mode
+        step runs a piece's later parts when any sample needs them): the order in which a concrete
+        batch (`params`, a batch on the last axis) runs, so that a slab holds like samples; the
+        batch is then cut into slabs on one device too (`coopjax.devices.run`). None (the default):
+        the step decides nothing per batch, any order and one program do."""
+        return None
 
     def __repr__(self):
         return f"<integrator {self.name}>"

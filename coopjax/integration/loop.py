@@ -57,6 +57,10 @@ class Solution(NamedTuple):
     metrics: object  # coopjax.objectives.Metrics
     y_final: jax.Array  # (20, B)
     trajectory: Trajectory | None
+    # Per sample, why its metrics are (or are not) an answer: `coopjax.status.Status` codes
+    # (`simulate` sets it: ok, diverged, or with check_dt "mark" an unstable loop or a step beyond
+    # the limit). `metrics.finite` is `status == ok`.
+    status: jax.Array | None = None
 
 
 def batched_leaves(solution) -> "Solution":

@@ -18,7 +18,7 @@ tuners may keep the state of a library such as `cma`. Either way a tuner must be
 its seed and the evaluations it is told: that is what makes resume-by-replay bit-identical.
 """
 
-from tuning.tuners.base import TUNERS, Evaluation, Query, Tuner, concatenate, get, register, setting
+from tuning.tuners.base import TUNERS, Best, Evaluation, Query, Tuner, concatenate, get, register, setting
 from tuning.tuners import ablation, adam, cma_slp, cmaes, random_search, screen_slp  # noqa: E402,F401  (the built-in tuners register themselves)
 
-__all__ = ["Evaluation", "Query", "TUNERS", "Tuner", "concatenate", "get", "register", "setting"]
+__all__ = ["Best", "Evaluation", "Query", "TUNERS", "Tuner", "concatenate", "get", "register", "setting"]

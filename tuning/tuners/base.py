@@ -5,10 +5,12 @@ from __future__ import annotations
 import abc
 import dataclasses
 import inspect
+import math
 from typing import Any, Callable, ClassVar, NamedTuple
 
 import numpy as np
 
+from coopjax.config import setting  # noqa: F401  (a tuner declares its settings with it)
 from coopjax.errors import InputError
 
 
@@ -37,6 +39,28 @@ class Evaluation(NamedTuple):
     jacobian: dict | None = None  # {"f": (C, n), "c", "parts", "min_swi": (C, columns, n)}, with "jacobian"
 
 
+class Best(NamedTuple):
+    """The best candidate told so far: one that meets every requirement at every training draw first,
+    then the lowest value (the objective, or a tuner's merit). Immutable: `told` returns the next."""
+
+    holds: bool = False
+    value: float = math.inf
+    theta: np.ndarray | None = None
+
+    def told(self, holds, value, theta) -> "Best":
+        """This record after a candidate; a value that is not finite never counts."""
+        if np.isfinite(value) and (bool(holds), -float(value)) > (self.holds, -self.value):
+            return Best(bool(holds), float(value), np.array(theta, copy=True))
+        return self
+
+    def told_all(self, thetas, values, holds, ok) -> "Best":
+        """This record after a batch (`ok` False: the candidate's run failed)."""
+        best = self
+        for x, v, h, good in zip(thetas, values, holds, ok):
+            best = best.told(h, v, x) if good else best
+        return best
+
+
 def worst_constraint(ev: Evaluation) -> np.ndarray:
     """(C,) the largest constraint value (> 0: a requirement is missed; NaN without requirements)."""
     return ev.c.max(1) if ev.c.shape[1] else np.full(len(ev.f), np.nan)
@@ -52,20 +76,14 @@ def concatenate(evaluations) -> Evaluation:
     return Evaluation(*(None if x[0] is None else np.concatenate(x) for x in zip(*evaluations)))
 
 
-def setting(default, help: str, flag: str | None = None, choices: tuple | None = None, kind: type | None = None):
-    """A tuner's setting: a dataclass field whose metadata `coopjax tune` turns into a flag (the
-    same metadata `coopjax.Config` uses). `flag` None: not on the command line; `choices`: a closed
-    set; `kind`: the flag's type where the default (None) does not say it."""
-    return dataclasses.field(default=default, metadata=dict(help=help, flag=flag, choices=choices, kind=kind))
-
-
 class Tuner(abc.ABC):
     """The interface every tuner implements (see the package docstring). A tuner is a frozen
     dataclass whose fields are its settings (declared with `setting`); `register` refuses one
     that leaves an abstract method out.
 
-    `tell` returns the next state; the driver logs and checkpoints states, so a tuner's state is
-    never changed in place after it is returned (copy, then change).
+    `ask` and `tell` never change a state they are given: `tell` returns the next one (copy, then
+    change), as optax's `update` does. Replaying a state then gives the same run (a test tells every
+    registered tuner made-up evaluations and checks each state it returned against a frozen copy).
     """
 
     name: ClassVar[str]

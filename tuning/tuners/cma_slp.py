@@ -16,6 +16,7 @@ with forward-mode Jacobians of every per-mass output) does that last part in a f
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -86,6 +87,8 @@ class CMAESPolished(Tuner):
         return Query(state.trials.copy(), state.draws)
 
     def tell(self, state, query, ev):
+        # The state told is never changed (`Tuner`): the next one starts as a copy (the problem shared).
+        state = copy.deepcopy(state, {id(state.problem): state.problem, id(state.cma.problem): state.cma.problem})
         return {"cma": self._tell_cma, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
             state, query, ev
         )

@@ -12,13 +12,15 @@ starts, which every tuner shares.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
 from coopjax.errors import InputError
-from tuning.tuners.base import Query, Tuner, register
+from tuning.tuners.base import Best, Query, Tuner, register
 
 BAD = 1e6  # the objective given to CMA-ES for a candidate whose run diverged
 
@@ -40,14 +42,27 @@ def _silent_constraint_loggers():
         handler._Logger = kept
 
 
+class Normal:
+    """cma's normal samples (its `randn(lam, N)` option) from a generator of the strategy's own, so
+    that a copy of a strategy samples what the strategy would (cma's default draws from numpy's
+    global generator, which it seeds: the same numbers, but shared by every strategy and copy)."""
+
+    def __init__(self, seed: int):
+        self.rng = np.random.RandomState(seed)
+
+    def __call__(self, *shape):
+        return self.rng.randn(*shape)
+
+
 def strategy(x0, sigma0, lo, hi, seed, popsize=None):
     """A quiet `cma.CMAEvolutionStrategy` in the box [lo, hi] (log units), from x0 clipped into it,
-    writing no log files; popsize None: cma's recommended 4 + 3 ln n."""
+    writing no log files, sampling from its own generator (`Normal`); popsize None: cma's
+    recommended 4 + 3 ln n."""
     try:
         import cma
     except ImportError:
         raise InputError("CMA-ES needs the cma package: pip install cma") from None
-    options = {"bounds": [list(lo), list(hi)], "seed": seed, "verbose": -9, "verb_log": 0, "verb_disp": 0}
+    options = {"bounds": [list(lo), list(hi)], "randn": Normal(seed), "verbose": -9, "verb_log": 0, "verb_disp": 0}
     if popsize:
         options["popsize"] = popsize
     with warnings.catch_warnings():
@@ -55,14 +70,46 @@ def strategy(x0, sigma0, lo, hi, seed, popsize=None):
         return cma.CMAEvolutionStrategy(np.clip(np.asarray(x0), lo, hi), sigma0, options)
 
 
-@dataclasses.dataclass
-class State:
-    es: object
-    fun: object
+def sample(es) -> np.ndarray:
+    """The population a strategy asks for next, without changing it (it asks a copy)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return np.asarray(copy.deepcopy(es).ask())
+
+
+def told(es, thetas, values) -> object:
+    """A copy of the strategy after the population it asks for next was evaluated."""
+    es = copy.deepcopy(es)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        asked = np.asarray(es.ask())
+        if not np.array_equal(asked, thetas):
+            raise ValueError("the strategy was told a population it did not ask for")
+        es.tell(list(thetas), list(values))
+    return es
+
+
+class Told:
+    """What cma's augmented Lagrangian asks for: the objective and the constraints of the candidates
+    of the current tell, looked up (a class, not closures, so that a copy looks up its own)."""
+
+    def __init__(self):
+        self.values = {}
+
+    def f(self, x):
+        return self.values[tuple(x)][0]
+
+    def g(self, x):
+        return self.values[tuple(x)][1]
+
+
+class State(NamedTuple):
+    es: object  # cma's strategy: never told in place (`told`)
+    fun: object  # cma's augmented Lagrangian, with its `Told`
     generation: int
     seed: int
     problem: object
-    best: list  # (holds, -f, theta) of the best candidate told so far
+    best: Best
     starts: np.ndarray  # (K, n) the given starts: restart k begins at starts[k % K]
     restarts: int = 0
     popsize: int = 0  # of the current run
@@ -84,53 +131,49 @@ class CMAES(Tuner):
         es = strategy(x0, self.sigma0, lo, hi, seed + 1, popsize)  # first: it refuses a missing cma in one line
         import cma
 
-        cache = {}
+        lookup = Told()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # cma's note that an optional archive package is missing
-            fun = cma.ConstrainedFitnessAL(
-                lambda x: cache[tuple(x)][0], lambda x: cache[tuple(x)][1], logging=0, dimension=len(x0)
-            )
+            fun = cma.ConstrainedFitnessAL(lookup.f, lookup.g, logging=0, dimension=len(x0))
         with _silent_constraint_loggers():
             fun.al  # noqa: B018  (built now, while its loggers are silent)
-        fun.cache = cache
+        fun.lookup = lookup
         return es, fun
 
     def init(self, problem, starts, seed):
         starts = np.asarray(starts)
         es, fun = self._start(problem, starts[0], seed, self.popsize)
-        return State(es, fun, 0, seed, problem, [], starts, 0, es.popsize)
+        return State(es, fun, 0, seed, problem, Best(), starts, 0, es.popsize)
 
     def ask(self, state):
         if self.generations is not None and state.generation >= self.generations:
             return None
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            X = np.asarray(state.es.ask())
-        return Query(X, state.problem.training_draws(state.seed, state.generation))
+        return Query(sample(state.es), state.problem.training_draws(state.seed, state.generation))
 
     def tell(self, state, query, ev):
-        X, cache = query.thetas, state.fun.cache
+        X = query.thetas
+        fun = copy.deepcopy(state.fun)
         for x, fi, ci, ok in zip(X, ev.f, ev.c, ev.valid):
-            cache[tuple(x)] = (float(fi) if ok else BAD, list(np.where(np.isfinite(ci), ci, BAD)))
+            fun.lookup.values[tuple(x)] = (float(fi) if ok else BAD, list(np.where(np.isfinite(ci), ci, BAD)))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # its AL warns about every interquartile range it adapts
-            state.es.tell(list(X), [state.fun(x) for x in X])
-            state.fun.update(state.es)
-        cache.clear()
-        for x, f, h, ok in zip(X, ev.f, ev.holds, ev.valid):
-            if ok and (not state.best or (bool(h), -float(f)) > tuple(state.best[:2])):
-                state.best = [bool(h), -float(f), np.asarray(x)]
-        state.generation += 1
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            stopped = self.ipop and state.es.stop()
+            es = told(state.es, X, [fun(x) for x in X])
+            fun.update(es)
+            stopped = self.ipop and es.stop()
+        fun.lookup.values.clear()
+        state = state._replace(
+            es=es,
+            fun=fun,
+            generation=state.generation + 1,
+            best=state.best.told_all(X, ev.f, ev.holds, ev.valid),
+        )
         if stopped:
-            state.restarts += 1
-            x0 = state.starts[state.restarts % len(state.starts)]
-            state.popsize *= 2
-            state.es, state.fun = self._start(state.problem, x0, state.seed + 1000 * state.restarts, state.popsize)
+            restarts, popsize = state.restarts + 1, state.popsize * 2
+            x0 = state.starts[restarts % len(state.starts)]
+            es, fun = self._start(state.problem, x0, state.seed + 1000 * restarts, popsize)
+            state = state._replace(es=es, fun=fun, restarts=restarts, popsize=popsize)
         return state
 
     def candidates(self, state):
         mean = np.asarray(state.es.mean)
-        return ([state.best[2]] if state.best else []) + [mean]
+        return ([] if state.best.theta is None else [state.best.theta]) + [mean]

@@ -3,21 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 
 from coopjax.errors import InputError
 
-from tuning.tuners.base import Query, Tuner, register, setting
+from tuning.tuners.base import Best, Query, Tuner, register, setting
 
 
-@dataclasses.dataclass
-class State:
-    rng: np.random.Generator
+class State(NamedTuple):
     generation: int
     seed: int
     problem: object
-    best: list
+    best: Best
 
 
 @register
@@ -44,23 +43,21 @@ class RandomSearch(Tuner):
         return self.generations is not None
 
     def init(self, problem, starts, seed):
-        return State(np.random.default_rng(seed), 0, seed, problem, [])
+        return State(0, seed, problem, Best())
 
     def ask(self, state):
         if self.generations is not None and state.generation >= self.generations:
             return None
         lo, hi = state.problem.log_bounds()
+        rng = np.random.default_rng([state.seed, state.generation])  # a block's draws follow from its state
         return Query(
-            lo + (hi - lo) * state.rng.random((self.block, len(lo))),
+            lo + (hi - lo) * rng.random((self.block, len(lo))),
             state.problem.training_draws(state.seed, state.generation),
         )
 
     def tell(self, state, query, ev):
-        for x, f, h, ok in zip(query.thetas, ev.f, ev.holds, ev.valid):
-            if ok and (not state.best or (bool(h), -float(f)) > tuple(state.best[:2])):
-                state.best = [bool(h), -float(f), np.asarray(x)]
-        state.generation += 1
-        return state
+        best = state.best.told_all(query.thetas, ev.f, ev.holds, ev.valid)
+        return state._replace(generation=state.generation + 1, best=best)
 
     def candidates(self, state):
-        return [state.best[2]] if state.best else []
+        return [] if state.best.theta is None else [state.best.theta]

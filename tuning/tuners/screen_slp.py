@@ -42,8 +42,8 @@ has converged and takes the screen's next point.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-import warnings
 from typing import ClassVar
 
 import numpy as np
@@ -53,7 +53,7 @@ from scipy.stats import qmc
 from coopjax.errors import InputError
 from tuning.problem import aggregate
 from tuning.tuners.base import Evaluation, Query, Tuner, concatenate, least_margin, register, setting, worst_constraint
-from tuning.tuners.cmaes import strategy
+from tuning.tuners.cmaes import sample, strategy, told
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
 BAD = 1e6  # the merit CMA-ES is told for a point whose run diverged
@@ -338,14 +338,10 @@ class ScreenSLP(Tuner):
         return min(-(-len(state.starts) // batch) * batch, len(state.screen_all))
 
     def _generation(self, state) -> np.ndarray:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return np.asarray(state.es.ask())
+        return sample(state.es)
 
     def _tell_strategy(self, state, thetas, phi):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            state.es.tell(list(thetas), [float(x) if np.isfinite(x) else BAD for x in phi])
+        state.es = told(state.es, thetas, [float(x) if np.isfinite(x) else BAD for x in phi])
 
     def _sobol_count(self, starts: int) -> int:
         """Sobol points in the screen: at least `screen`, as many as fill the last batch."""
@@ -406,6 +402,8 @@ class ScreenSLP(Tuner):
         return state
 
     def tell(self, state, query, ev):
+        # The state told is never changed (`Tuner`): the next one starts as a copy (the problem shared).
+        state = copy.deepcopy(state, {id(state.problem): state.problem})
         if state.phase == "screen only":
             return self._tell_more(state, query, ev)
         return {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](

@@ -2,20 +2,25 @@
 
 All tuners solve the same problem (the same model, step, training draws and box) from the same
 starting points, and each gets the wall time the reference tuner (the one `coopjax tune` runs) took
-on that seed. Compilation is done before any clock starts and reported apart. Each tuner's running
-choice, its best candidate so far by the training criterion (meets every requirement at every training draw, then
-lowest objective), is validated afterwards on the validation draws with the judging step, so the
-curves compare what each tuner would hand over at that moment, on draws none of them trained on.
+on that seed. Each runs the session `coopjax tune` runs (`tuning.session.run`), so each hands over
+what its selection chooses. Compilation is done before any clock starts and reported apart. Each
+tuner's running choice, its best candidate so far by the training criterion (meets every
+requirement at every training draw, then lowest objective), is validated afterwards on the
+validation draws with the judging step, so the curves compare what each tuner would hand over at
+that moment, on draws none of them trained on.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
-from tuning import driver
-from tuning.judging import judge, preferred
+from coopjax.io import Outputs, write_json
+from tuning import driver, session
+from tuning.plots import plot_race
+from tuning.judging import judge
 from tuning.problem import from_log
 
 MAX_SNAPSHOTS = 24  # validated points per tuner and seed (log-spaced in time, the last always kept)
@@ -51,67 +56,57 @@ BUDGETS = ("time", "trajectories")
 
 
 def run(
-    tuners: dict,
+    sessions: dict,
     reference: str,
-    problem,
-    base,
-    starts_for,
     seeds,
     log=print,
     progress: bool = False,
-    judge_dt: float | None = None,
     budget: str = "time",
     target: str | None = None,
-    held_out_count: int = 12,
 ) -> dict:
-    """Race `tuners` (name -> tuner) over `seeds`; `starts_for(seed)` gives the (K, n) starts.
-    The reference tuner runs to its own end; every other tuner gets its wall time (`budget="time"`) or
-    as many simulated trajectories (`"trajectories"`). Times to reach are to `target`'s final
-    validated objective (default: the first other tuner)."""
+    """Race prepared sessions (tuner name -> `session.Session`, one problem) over `seeds`.
+
+    Each session runs through `session.run`, as `coopjax tune` runs it: the reference to its own
+    end, every other one with the reference's wall time (`budget="time"`) or as many simulated
+    trajectories (`"trajectories"`); each hands over the candidate its selection chooses. The curves
+    are each tuner's running choice (`snapshots`), validated afterwards. Times to reach are to
+    `target`'s final validated objective (default: the first other tuner)."""
+    first = sessions[reference]
+    problem, base, judge_dt = first.problem, first.base, first.options.judge_dt
     names = problem.names
     masses = problem.validation_draws()
-    held_out = problem.held_out_draws(held_out_count)
-    order = [reference] + [n for n in tuners if n != reference]
-    judging = {} if judge_dt is None else {"dt": judge_dt}
+    order = [reference] + [n for n in sessions if n != reference]
     per_seed, compile_s = [], {}
     for seed in seeds:
-        starts = starts_for(seed)
-        results = {}
+        tuned = {}
         for name in order:
+            prepared = sessions[name]._replace(options=dataclasses.replace(sessions[name].options, seed=seed))
             if name == reference:
                 limit = driver.Budget()
             elif budget == "time":
-                limit = driver.Budget(seconds=results[reference].elapsed)
+                limit = driver.Budget(seconds=tuned[reference].result.elapsed)
             else:
-                limit = driver.Budget(trajectories=results[reference].trajectories)
-            results[name] = driver.run(
-                tuners[name], problem, base, starts, seed, budget=limit, progress=progress and name == reference
-            )
-            compile_s[name] = max(compile_s.get(name, 0.0), results[name].compile_s)
+                limit = driver.Budget(trajectories=tuned[reference].result.trajectories)
+            tuned[name] = session.run(prepared, budget=limit, progress=progress and name == reference)
+            compile_s[name] = max(compile_s.get(name, 0.0), tuned[name].result.compile_s)
+        results = {name: t.result for name, t in tuned.items()}
         budget_s = results[reference].elapsed
-        # Validate every tuner's running choices and final candidates in one batch.
-        snaps = {name: snapshots(r.record) for name, r in results.items()}
-        finals = {name: [from_log(t, names) for t in r.tuner.candidates(r.state)] for name, r in results.items()}
-        flat = [(name, t, from_log(results[name].record.thetas[i], names)) for name, s in snaps.items() for t, i in s]
-        flat += [(name, None, p) for name, ps in finals.items() for p in ps]
-        verdicts = judge([p for _, _, p in flat], masses, problem, base, **judging) if flat else []
-        raw = {name: [] for name in results}
-        last = {name: [] for name in results}
-        for (name, t, p), v in zip(flat, verdicts):
-            (raw[name] if t is not None else last[name]).append((t, v, p))
-        chosen, curves = {}, {}
-        for name in results:
-            options = [(v, p) for _, v, p in raw[name]] + [(v, p) for _, v, p in last[name]]
-            if options:
-                pick = preferred([v for v, _ in options])
-                chosen[name] = options[pick][1]
-                # The handed-over answer counts from the moment the tuner stopped.
-                points = [(t, v.score) for t, v, _ in raw[name]] + [(results[name].elapsed, options[pick][0].score)]
-            else:
-                chosen[name], points = None, []
+        # Validate every tuner's running choices in one batch.
+        flat = [
+            (name, t, from_log(results[name].record.thetas[i], names))
+            for name in order
+            for t, i in snapshots(results[name].record)
+        ]
+        verdicts = judge([p for _, _, p in flat], masses, problem, base, judge_dt) if flat else []
+        curves = {}
+        for name in order:
+            points = [(t, v.score) for (n, t, _), v in zip(flat, verdicts) if n == name]
+            # The handed-over answer counts from the moment the tuner stopped.
+            points.append((results[name].elapsed, tuned[name].validation.score))
             curves[name] = running_min(points)
-        final = {name: (c[-1][1] if c else math.inf) for name, c in curves.items()}
-        judged = {name: judge(p, held_out, problem, base, **judging).row() if p else None for name, p in chosen.items()}
+        final = {name: c[-1][1] for name, c in curves.items()}
+        chosen = {name: t.params for name, t in tuned.items()}
+        judged = {name: t.verdict.row() for name, t in tuned.items()}
         others = [n for n in order if n != reference]
         target_name = target if target in results else (others[0] if others else reference)
         reach = {name: time_to_reach(c, final[target_name]) for name, c in curves.items()}
@@ -129,13 +124,12 @@ def run(
         }
         per_seed.append(row)
         g = judged[reference]
-        if g:
-            log(
-                f"seed {seed}: {reference}'s answer on the held-out draws: meets every requirement "
-                f"{'yes' if g['holds'] else 'NO'}; "
-                + "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in g["requirements"])
-                + f"; objective {g['objective']:.3f} N"
-            )
+        log(
+            f"seed {seed}: {reference}'s answer on the held-out draws: meets every requirement "
+            f"{'yes' if g['holds'] else 'NO'}; "
+            + "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in g["requirements"])
+            + f"; objective {g['objective']:.3f} N"
+        )
         log(
             f"seed {seed}: budget {budget_s:.1f} s; validated objective "
             + ", ".join(f"{name} {final[name]:.2f} N" for name in order)
@@ -149,7 +143,7 @@ def run(
         "reference": reference,
         "budget": budget,
         "validation_draws": masses.tolist(),
-        "held_out_draws": held_out.tolist(),
+        "held_out_draws": first.held_out.tolist(),
         "compile_s": compile_s,
         "per_seed": per_seed,
         "summary": summary(per_seed, order),
@@ -210,3 +204,12 @@ def print_summary(result: dict) -> None:
             f"wall time than {target} ({_fmt_time(ref)} against {_fmt_time(tgt)}); it ends better than {target} on "
             f"{s.get('reference_better_on_seeds', 0)} of {len(result['seeds'])} seeds"
         )
+
+
+def save(result: dict, path: str, figure: str) -> None:
+    """The race's result file and figure, both or neither; then its summary."""
+    with Outputs() as out:
+        write_json(out.path(path), result)
+        plot_race(result, out.path(figure))
+    print_summary(result)
+    print(f"wrote {path} and {figure}")

@@ -1,0 +1,138 @@
+"""One tuning session behind every front end: `coopjax tune`, `tuning.tune`, the race and the Pareto
+study give the same answer on a small problem; the session's checks are the command's; a tuner's
+state is never changed in place."""
+
+import copy
+import dataclasses
+import json
+import pickle
+
+import numpy as np
+import pytest
+
+import tuning
+from coopjax import cli
+from coopjax.errors import InputError
+from tuning import session
+from tuning.problem import GAINS, Problem
+from tuning.studies import pareto, race
+from tuning.tuners import TUNERS, Evaluation
+
+# The smallest problem that still trains, selects and judges; random search for one block is the
+# cheapest tuner that ends on its own.
+PROBLEM = Problem(names=GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False)
+OPTIONS = session.Options(starts=2, held_out=2, judge_dt=2e-3)
+SETTINGS = {"generations": 1}
+FLAGS = (
+    "--params gains --masses loguniform:0.8:4.5 --train-masses 2 --margin 0 --fixed-masses "
+    "--starts 2 --held-out 2 --judge-dt 2e-3 --method random-search --generations 1 --quiet"
+).split()
+
+
+def test_the_command_the_api_the_race_and_the_pareto_study_give_the_same_answer(fresh_dir, capsys):
+    tuned = tuning.tune(PROBLEM, "random search", options=OPTIONS, **SETTINGS)
+    prepared = session.prepare(PROBLEM, TUNERS["random search"](**SETTINGS), OPTIONS)
+    raced = race.run({"random search": prepared}, "random search", [OPTIONS.seed], log=lambda s: None)
+    front = pareto.run({"random search": prepared}, "random search", [PROBLEM.minimise[-1].weight], log=lambda s: None)
+    flags = [f if f != "random-search" else "random search" for f in FLAGS]
+    code = cli.main(["tune", *flags, "--out", "t.json"])
+    written = json.loads((fresh_dir / "t.json").read_text())
+    assert code == (0 if written["holds"] else 3), capsys.readouterr()
+    assert raced["per_seed"][0]["chosen"]["random search"] == tuned.params
+    assert next(r["params"] for r in front["pareto"] if r["kind"] == "front") == tuned.params
+    assert written["params"] == tuned.params
+    assert written["after"]["objective"] == pytest.approx(tuned.verdict.objective, rel=1e-12)
+
+
+def test_the_spread_reaches_the_screen_from_every_front_end():
+    tuner = TUNERS["screen-SLP"]()
+    prepared = session.prepare(PROBLEM, tuner, dataclasses.replace(OPTIONS, spread=0.7))
+    assert prepared.tuner.spread == 0.7  # the starts' box and the screen's are one setting
+    assert session.prepare(PROBLEM, tuner, OPTIONS).tuner.spread == OPTIONS.spread
+    parser = cli.build_parser()
+    args = parser.parse_args(["tune", "--spread", "0.7"])
+    from tuning import cli as tune_cli
+
+    assert session.with_spread(tune_cli.make_tuner(args), args.spread).spread == 0.7
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        (dict(starts=0), "starts"),
+        (dict(seed=-1), "seed"),
+        (dict(held_out=1), "held_out"),
+        (dict(judge_dt=0.05), None),  # beyond filippov's stability limit for the first start
+        (dict(judge_dt="1e-3"), "judge_dt"),
+    ],
+)
+def test_prepare_checks_what_the_command_checked_and_names_the_field(change, field):
+    with pytest.raises(InputError) as error:
+        session.prepare(PROBLEM, TUNERS["random search"](**SETTINGS), dataclasses.replace(OPTIONS, **change))
+    if field:
+        assert error.value.field == field and str(error.value).startswith(field)
+
+
+def test_a_tuner_that_never_ends_needs_a_budget_and_too_large_a_batch_is_refused():
+    with pytest.raises(InputError, match="budget"):
+        session.prepare(PROBLEM, TUNERS["CMA-ES"](), OPTIONS)
+    with pytest.raises(InputError, match="more than half of this machine's memory"):
+        session.prepare(dataclasses.replace(PROBLEM, n_draws=10**8), TUNERS["screen-SLP"](local=10**4), OPTIONS)
+
+
+def _fake_evaluation(query, rng):
+    C, M = len(query.thetas), len(np.atleast_1d(query.draws))
+    holds = rng.random(C) < 0.5
+    parts = rng.random((C, 2 * M))
+    return Evaluation(
+        f=parts.sum(1),
+        c=rng.normal(size=(C, M)),
+        parts=parts,
+        valid=np.ones(C, bool),
+        holds=holds,
+        min_swi=rng.random((C, M)),
+        jacobian=None
+        if query.derivative != "jacobian"
+        else {
+            "f": rng.normal(size=(C, query.thetas.shape[1])),
+            "c": rng.normal(size=(C, M, query.thetas.shape[1])),
+            "parts": rng.normal(size=(C, 2 * M, query.thetas.shape[1])),
+            "min_swi": rng.normal(size=(C, M, query.thetas.shape[1])),
+        },
+        value=None if query.derivative != "gradient" else parts.sum(1),
+        gradient=None if query.derivative != "gradient" else rng.normal(size=query.thetas.shape),
+    )
+
+
+@pytest.mark.parametrize("name", sorted(TUNERS))
+def test_no_tuner_changes_a_state_it_returned(name):
+    """Tell every tuner made-up evaluations; a frozen copy of each state it returned must still equal
+    the state after the later tells, and telling the copy again goes on as the run went."""
+    settings = {"random search": SETTINGS, "screen-SLP": {"screen": 8, "local": 2, "steps": 2}}.get(name, {})
+    tuner = TUNERS[name](**settings)
+    rng = np.random.default_rng(0)
+    starts = np.log([[0.054, 0.078, 2.93, 1224.0], [0.5, 0.1, 1.25, 600.0]])
+    state = tuner.init(PROBLEM, starts, 0)
+    kept = []
+    for _ in range(6):
+        query = tuner.ask(state)
+        if query is None:
+            break
+        frozen = pickle.dumps(state)
+        evaluation = _fake_evaluation(query, rng)
+        new = tuner.tell(state, query, evaluation)
+        kept.append((frozen, state, query, evaluation, new))
+        state = new
+    for frozen, before, query, evaluation, after in kept:
+        assert pickle.dumps(before) == frozen, f"{name} changed a state it had returned"
+        # Told again from the frozen copy, it goes on as it went (what it asks next, what it would hand over).
+        again = tuner.tell(copy.deepcopy(pickle.loads(frozen)), query, evaluation)
+        _same_query(tuner.ask(again), tuner.ask(after), name)
+        assert all(np.array_equal(a, b) for a, b in zip(tuner.candidates(again), tuner.candidates(after))), name
+
+
+def _same_query(a, b, name):
+    assert (a is None) == (b is None), name
+    if a is not None:
+        assert np.array_equal(a.thetas, b.thetas) and np.array_equal(a.draws, b.draws), name
+        assert a.derivative == b.derivative, name

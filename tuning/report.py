@@ -1,0 +1,163 @@
+"""What a tuning session reports: the before/after table, the result file's data, the figures and
+the exit code. The command prints and writes these; nothing here parses or runs a session."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from coopjax import scenarios
+from coopjax.io import Outputs
+from coopjax.objectives import METRICS
+from coopjax.params import PARAMETERS, split_name
+from tuning.plots import plot_history, plot_traces
+from tuning.problem import HOLD_TOLERANCE, Problem
+from tuning.session import Session, Tuned, ends, trace
+
+EXIT_MISSED = 3  # the answer written misses a requirement on the held-out draws
+
+
+def data(session: Session, tuned: Tuned) -> dict:
+    """The result file of a plain run."""
+    history = dict(session.tuner.history(tuned.result.state))
+    history.pop("theta", None)
+    result = tuned.result
+    return {
+        "params": tuned.params,
+        "requirements": tuned.verdict.requirements,
+        "holds": tuned.verdict.holds,
+        "start": session.first,
+        "before": tuned.start.row() if tuned.start is not None else None,
+        "after": tuned.verdict.row(),
+        "held_out_draws": {u.name: session.held_out[:, i].tolist() for i, u in enumerate(session.problem.uncertain)},
+        "judge": {
+            "switch": "hard",
+            "contact": "unilateral",
+            "integrator": "filippov",
+            "dtype": "float64",
+            "dt": session.options.judge_dt,
+            "hold_tolerance_N": HOLD_TOLERANCE,
+        },
+        "config": {"problem": problem_data(session.problem), **session.describe()},
+        "method": session.tuner.plan_text(len(session.problem.names), session.options.starts),
+        "history": history,
+        "trajectories": result.trajectories,
+        "tuning_seconds": result.elapsed,
+        "compile_seconds": result.compile_s,
+        "selection": tuned.selection,
+    }
+
+
+def exit_code(verdict) -> int:
+    """0 when every requirement holds on the held-out draws; else `EXIT_MISSED`, naming what misses."""
+    if verdict.holds:
+        return 0
+    missed = [r for r in verdict.requirements if not r["met"]]
+    reasons = [
+        f"{r['requirement']} (margin {r['margin']:.4g} {r['unit']})" if np.isfinite(r["margin"]) else r["requirement"]
+        for r in missed
+    ]
+    if not verdict.measured:
+        reasons.append("a held-out run did not finish (diverged, or beyond its step's stability limit)")
+    elif verdict.step_artefact:
+        reasons.append("a held-out answer moves by more than a tolerance between dt and dt/2 (a step artefact)")
+    print(f"the answer written misses: {'; '.join(reasons)} (exit code {EXIT_MISSED})")
+    return EXIT_MISSED
+
+
+def shown(x, unit: str) -> tuple[float, str]:
+    """A metric's value and unit for display (lengths in mm)."""
+    return (x * 1e3, "mm") if unit == "m" else (x, unit)
+
+
+def print_table(before, after, start, tuned, problem: Problem) -> None:
+    print()
+    print(f"{'':<34} {'start (Table 1)':>16} {'tuned':>12}")
+    for n in problem.names:
+        print(f"{n:<34} {start[n]:>16.5g} {tuned[n]:>12.5g}")
+    print("requirements, worst over the held-out draws:")
+    met = lambda r, m: f"{'met' if r['met'] else 'MISSED'} ({m:+.3g})"
+    for rb, ra in zip(before.requirements, after.requirements):
+        wb, unit = shown(rb["worst"], rb["unit"])
+        wa, _ = shown(ra["worst"], ra["unit"])
+        bound = shown(ra["bound_value"], ra["unit"])[0]
+        print(f"  {ra['metric'] + f' [{unit}]':<32} {wb:>16.4g} {wa:>12.4g}")
+        label = f"  {'>=' if ra['kind'] == 'at_least' else '<='} {bound:.4g}: met? (margin)"
+        print(
+            f"  {label:<32} {met(rb, shown(rb['margin'], rb['unit'])[0]):>16} "
+            f"{met(ra, shown(ra['margin'], ra['unit'])[0]):>12}"
+        )
+    print("objective:")
+    for tb, ta in zip(before.terms, after.terms):
+        unit = METRICS[ta["metric"]].unit
+        vb, label = shown(tb["value"], unit)
+        va, _ = shown(ta["value"], unit)
+        print(f"  {ta['over'] + ' ' + ta['metric'] + f' [{label}]':<32} {vb:>16.4g} {va:>12.4g}")
+    print(f"  {'sum of weight x term [N]':<32} {before.objective:>16.4g} {after.objective:>12.4g}")
+    for key, label in (("peak_grip", "worst peak grip [N]"), ("rms_lag", "worst RMS lag [mm]")):
+        if key in after.worst and not any(t["metric"] == key for t in after.terms):
+            factor = 1e3 if key == "rms_lag" else 1.0
+            print(f"  {label:<32} {before.worst[key] * factor:>16.4g} {after.worst[key] * factor:>12.4g}")
+    verdict = lambda v: "yes" if v.holds else "NO"
+    print(f"{'every requirement holds':<34} {verdict(before):>16} {verdict(after):>12}")
+    check = lambda v: (
+        "not run"
+        if not np.isfinite(v.step_error)
+        else f"{'ARTEFACT' if v.step_artefact else 'ok'} ({v.step_error:.2f})"
+    )
+    print(f"{'dt/2 check (1 = tolerance)':<34} {check(before):>16} {check(after):>12}")
+    print()
+
+
+def plots(session: Session, tuned: Tuned, files: dict, out: Outputs) -> None:
+    """The history of the run and the grip traces of the start and the answer, written through `out`."""
+    p, tuner = session.problem, session.tuner
+    what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
+    plot_history(
+        tuner.history(tuned.result.state),
+        out.path(files["history"]),
+        f"tuning {what} with {tuner.name} on the {p.switch} model (dt = {p.train_dt:g} s), "
+        f"{p.n_training} training draws\n{tuner.plan_text(len(p.names), session.options.starts)}",
+    )
+    start_trace = tuned.start_trace if tuned.start_trace is not None else trace(session, session.first)
+    runs = {"start (Table 1)": start_trace, "tuned": trace(session, tuned.params)}
+    units = {u.name: PARAMETERS[split_name(u.name)[0]].unit for u in p.uncertain}
+    labels = [
+        ", ".join(f"{u.name} = {x:.3g} {units[u.name]}" for u, x in zip(p.uncertain, row)) for row in ends(session)
+    ]
+    scenario = scenarios.get(p.scenarios[0])
+    plot_traces(
+        runs,
+        labels,
+        float(np.asarray(session.base.F_lim).min()),
+        float(np.asarray(session.base.F_max)),
+        out.path(files["traces"]),
+        scenario=scenario.name,
+        window=scenario.windows.get("grip"),
+    )
+
+
+def problem_data(problem: Problem) -> dict:
+    """The problem as plain data for result files, with the file that states it."""
+    d = {f.name: getattr(problem, f.name) for f in dataclasses.fields(problem)}
+    d["uncertain"] = {u.name: u.text for u in problem.uncertain}
+    d["minimise"] = [o._asdict() for o in problem.minimise]
+    d["require"] = [r._asdict() for r in problem.require]
+    d["configs"] = [json.loads(c.to_json()) for c in problem.configs]
+    d["toml"] = problem.to_toml()
+    return d
+
+
+def paths(out: str) -> dict:
+    """The files of a run whose result is OUT: its checkpoint and figures beside it."""
+    stem = out[:-5] if out.endswith(".json") else out
+    return {
+        "out": out,
+        "checkpoint": out + ".ckpt",
+        "history": stem + "_history.png",
+        "traces": stem + "_traces.png",
+        "race": stem + "_race.png",
+        "pareto": stem + "_pareto.png",
+    }

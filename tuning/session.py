@@ -1,0 +1,338 @@
+"""A tuning session: a problem, a tuner and their options, checked (`prepare`), then run (`run`).
+
+Every front end runs the same session: `tuning.tune`, `coopjax tune`, the race (`--compare`) and the
+Pareto study (`--pareto`). `prepare` holds every check that needs no simulation beyond one
+linearisation, each an `InputError` that names its field; `run` goes through the driver, selects
+among the tuner's candidates on validation draws and judges the choice on held-out draws:
+
+    session = prepare(problem, ScreenSLP(), Options(seed=1))
+    tuned = run(session)                         # tuned.params, tuned.verdict, tuned.validation, ...
+
+What is kept while a run goes is the recorder's business (OpenMDAO's recorders): `driver.Checkpoint`
+keeps the log in a file after every evaluation, and a run resumed from it replays that log.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from coopjax.config import check_setting, setting
+from coopjax.errors import InputError
+from coopjax.params import Params
+from coopjax.simulation import memory_limit, simulate
+from coopjax.stability import check_step
+from tuning import driver
+from tuning.design import describe as describe_draws
+from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, select
+from tuning.problem import Problem, from_log, starting_points, to_log
+from tuning.tuners import Tuner
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """How a session runs its problem: where it starts, how it is judged. Declared once here; the
+    command's flags and `tuning.tune`'s keywords are these fields."""
+
+    starts: int = setting(
+        8,
+        "starting points run as one batch; the first is the base's (Table 1's)",
+        "--starts",
+        kind=int,
+        check=lambda x: None if x >= 1 else "it must be a whole number, at least 1",
+    )
+    spread: float = setting(
+        2.5,
+        "random starts lie within x/÷ e^SPREAD of the first; a screening tuner searches the same box",
+        "--spread",
+        kind=float,
+        check=lambda x: None if x >= 0 else "it must be 0 or more",
+    )
+    seed: int = setting(
+        0,
+        "seed of the random starts, the draws and the tuner",
+        "--seed",
+        kind=int,
+        check=lambda x: None if x >= 0 else "it must be 0 or more",
+    )
+    held_out: int = setting(
+        12,
+        "held-out draws for judging: a grid with its ends (one uncertain parameter), or Sobol points besides the "
+        "box's corners (several)",
+        "--held-out",
+        kind=int,
+        check=lambda x: None if x >= 2 else "judge on at least 2 draws (the lightest and the heaviest)",
+    )
+    judge_dt: float = setting(
+        JUDGE_DT,
+        "step of the hard model for validation and judging",
+        "--judge-dt",
+        kind=float,
+        unit="s",
+        check=lambda x: None if x > 0 else "it must be positive",
+    )
+
+    def validate(self) -> "Options":
+        for field in dataclasses.fields(self):
+            check_setting(field, getattr(self, field.name))
+        return self
+
+
+class Session(NamedTuple):
+    """A checked session: nothing has run. `first` is the first start (the base's values of the tuned
+    names); `held_out` the (M, p) held-out draws."""
+
+    problem: Problem
+    tuner: Tuner
+    options: Options
+    base: Params
+    first: dict
+    held_out: np.ndarray
+
+    def starts(self, seed: int | None = None) -> np.ndarray:
+        """The (K, n) log-parameter starts every tuner of this session begins from."""
+        o = self.options
+        seed = o.seed if seed is None else seed
+        return starting_points(self.problem, self.base, self.first, o.starts, o.spread, seed)
+
+    def describe(self) -> dict:
+        """The session as plain data, for result files."""
+        return {
+            "tuner": self.tuner.name,
+            "tuner_settings": dataclasses.asdict(self.tuner),
+            **dataclasses.asdict(self.options),
+        }
+
+
+class Tuned(NamedTuple):
+    """What a session found and how it was judged."""
+
+    params: dict  # the tuned names' values
+    verdict: Verdict  # on the held-out draws, with the two-step check
+    validation: Verdict  # on the validation draws, where it was selected
+    result: driver.Result  # the tuner's run: its record, clock and trajectories
+    selection: dict  # how many candidates, how many held, which was chosen, on which draws
+    start: Verdict | None = None  # the first start's verdict on the held-out draws (run(judge_start=True))
+    start_trace: Any = None  # and its recorded run at the ends of the box (for figures)
+
+
+# Bytes one training run holds while a batch runs, per value it carries (its state and metric
+# accumulators, each with its tangents): a generous round figure, for refusing absurd sizes up front.
+RUN_BYTES = 8 * 4 * (20 + 40)
+JUDGED_BYTES = 8 * 2 * 24  # one held-out (draw, scenario) row of the judge's tables, at dt and dt/2
+
+
+def _check_sizes(problem: Problem, tuner: Tuner, options: Options) -> None:
+    """Every size the run holds at once, against half of this machine's memory: one query's batch of
+    runs (candidates x training draws x scenarios), the tuner's record, and the judge's tables."""
+    limit, scenarios = memory_limit(), len(problem.scenarios)
+    gib = lambda b: f"{b / 2**30:.3g} GiB"
+    p, n = len(problem.uncertain), len(problem.names)
+    draws = problem.n_draws + (2**p if p > 1 else 0)
+    if problem.n_draws * p * 8 * 4 > limit:
+        raise InputError(
+            f"n_draws {problem.n_draws:,}: the training draws alone need {gib(problem.n_draws * p * 32)}, "
+            f"more than half of this machine's memory ({gib(limit)})",
+            "n_draws",
+        )
+    count, setting = tuner.largest_batch(n, options.starts)
+    runs = count * draws * scenarios
+    if runs * RUN_BYTES * (1 + n) > limit:
+        raise InputError(
+            f"n_draws {problem.n_draws} with {setting}: one step would run {runs:,} trajectories at once "
+            f"({count:,} candidates x {draws:,} draws x {scenarios} scenario(s)), about "
+            f"{gib(runs * RUN_BYTES * (1 + n))}, more than half of this machine's memory ({gib(limit)}): "
+            "lower one of them",
+            "n_draws",
+        )
+    kept, setting = tuner.kept_bytes(n, options.starts, draws * scenarios)
+    if kept > limit:
+        raise InputError(
+            f"{setting}: the tuner would keep {gib(kept)} of results, more than half of this machine's memory "
+            f"({gib(limit)})",
+            "tuner",
+        )
+    if options.held_out * scenarios * JUDGED_BYTES > limit:
+        raise InputError(
+            f"held_out {options.held_out:,}: the judge's tables would need "
+            f"{gib(options.held_out * scenarios * JUDGED_BYTES)}, more than half of this machine's memory "
+            f"({gib(limit)}); at most {limit // (scenarios * JUDGED_BYTES):,} draws",
+            "held_out",
+        )
+
+
+def with_spread(tuner: Tuner, spread: float) -> Tuner:
+    """The tuner with the session's spread where it has a search box of its own (screen-SLP's screen
+    is the starts' box): one setting, never two that drift."""
+    if "spread" in {f.name for f in dataclasses.fields(tuner)}:
+        return dataclasses.replace(tuner, spread=spread)
+    return tuner
+
+
+def prepare(
+    problem: Problem | None,
+    tuner: Tuner,
+    options: Options = Options(),
+    base: Params | None = None,
+    budget: driver.Budget = driver.Budget(),
+) -> Session:
+    """Check a session before anything runs. Each mistake is one `InputError` naming its field:
+    the problem and the options; whether the tuner ends (on its own, or by `budget`) and can start;
+    the memory its batches and the judge's tables need; and the first start's step, in training and
+    in judging (its linearised loop must be stable there).
+
+    Args:
+      problem: the problem (default: the default `Problem`).
+      tuner: a tuner instance (`tuning.TUNERS[name](**settings)`).
+      options: starts, spread, seed, held-out draws and the judge's step.
+      base: every parameter the problem neither tunes nor draws (default Table 1's), a single set.
+      budget: what ends a tuner that has no end of its own.
+    """
+    problem = (problem or Problem()).validate()
+    options = options.validate()
+    if not isinstance(tuner, Tuner):
+        raise InputError(f"tuner is {tuner!r}: a Tuner instance (tuning.TUNERS[name](...))", "tuner")
+    tuner = with_spread(tuner, options.spread)
+    if not tuner.ends() and budget == driver.Budget():
+        raise InputError(
+            f"{tuner.name} ends only when told how far to go: give it a budget or a setting that ends it", "budget"
+        )
+    _check_sizes(problem, tuner, options)
+    base = problem.base(base)
+    if base.batch_shape:
+        raise InputError("base: the base parameters of a session must be a single set, not a batch", "base")
+    first = {n: float(np.asarray(base.get(n)).ravel()[0]) for n in problem.names}
+    first_set = base.replace(**first)
+    for config in problem.configs:  # the first start must survive its first step, in training and judging
+        check_step(first_set, config)
+        check_step(first_set, judge_config(options.judge_dt, config.scenario).validate())
+    try:  # the tuner can start on this problem (a setting it cannot meet here is refused now)
+        tuner.init(problem, np.clip(to_log(first, problem.names), *problem.log_bounds())[None], options.seed)
+    except InputError as error:
+        raise InputError(f"{tuner.name} cannot start on this problem: {error}", error.field or "tuner") from None
+    return Session(problem, tuner, options, base, first, problem.held_out_draws(options.held_out))
+
+
+def ends(session: Session) -> np.ndarray:
+    """The two held-out draws traced: every uncertain parameter at its box's low end, then its high
+    end (the lightest and the heaviest body with the default problem)."""
+    p = len(session.problem.uncertain)
+    return session.held_out[[0, -1 if p == 1 else 2**p - 1]]
+
+
+def trace(session: Session, values: dict):
+    """The recorded run of one parameter set at the two end draws, on the problem's first scenario."""
+    drawn = {u.name: ends(session)[:, i] for i, u in enumerate(session.problem.uncertain)}
+    params = session.base.replace(**values, **drawn)
+    if "M_b" not in drawn:
+        params = params.replace(M_b=np.full(2, float(np.asarray(session.base.M_b))))
+    config = judge_config(session.options.judge_dt, session.problem.scenarios[0])
+    return simulate(params, config, every=1, check_dt=False).trajectory
+
+
+class _Background(threading.Thread):
+    """A job that does not depend on the tuning, run while the tuner runs: a run of small batches
+    leaves part of the cores idle, and the job compiles programs the later steps reuse. An error is
+    raised where the result is asked for."""
+
+    def __init__(self, job: Callable):
+        super().__init__(daemon=True, name="coopjax-judge")  # Ctrl-C does not wait for it
+        self.job, self.value, self.error = job, None, None
+        self.start()
+
+    def run(self):
+        try:
+            self.value = self.job()
+        except BaseException as error:  # noqa: BLE001 (re-raised in the caller's thread)
+            self.error = error
+
+    def result(self):
+        self.join()
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
+def _quiet(text: str) -> None:
+    pass
+
+
+def run(
+    session: Session,
+    *,
+    budget: driver.Budget = driver.Budget(),
+    recorder: driver.Checkpoint | None = None,
+    judge_start: bool = False,
+    progress: bool = False,
+    on_step: Callable | None = None,
+    log: Callable[[str], None] = _quiet,
+) -> Tuned:
+    """Run a prepared session: the tuner through the driver, the selection among its candidates on
+    the validation draws, and the judge's verdict on the held-out draws.
+
+    Args:
+      session: from `prepare`.
+      budget: when a tuner stops, whichever comes first (seconds of evaluation, trajectories).
+      recorder: keeps the run's log as it goes (`driver.Checkpoint`), and resumes from it.
+      judge_start: also judge the first start, and record its traces, in a background thread while
+        the tuner runs (the judge's and the traces' programs are then compiled for the answer's).
+      progress: a progress bar on stderr.
+      on_step: `on_step(state, query, evaluation)` after each live evaluation.
+      log: where the lines saying what runs now go (default: nowhere).
+    """
+    problem, tuner, o = session.problem, session.tuner, session.options
+    background = None
+    if judge_start:
+        background = _Background(
+            lambda: (
+                judge(session.first, session.held_out, problem, session.base, o.judge_dt),
+                trace(session, session.first),
+            )
+        )
+    result = driver.run(
+        tuner,
+        problem,
+        session.base,
+        session.starts(),
+        o.seed,
+        budget=budget,
+        recorder=recorder,
+        progress=progress,
+        total=tuner.expected_evaluations(o.starts),
+        on_step=on_step,
+    )
+    options = [from_log(t, problem.names) for t in tuner.candidates(result.state)]
+    if not options:
+        raise InputError(f"{tuner.name} evaluated nothing within the budget", "budget")
+    draws = problem.validation_draws()
+    log(
+        f"selecting among {len(options)} candidates: hard model on {describe_draws(problem.uncertain, draws)} "
+        "for validation (none of them held out) ..."
+    )
+    # The two-step check is the judge's (below): validating every candidate twice would double the
+    # selection's compile and run time for a check that the chosen one gets anyway.
+    chosen, verdicts = select(options, draws, problem, session.base, o.judge_dt, check_step=False)
+    v = verdicts[chosen]
+    held = sum(x.holds for x in verdicts)
+    log(
+        f"  {held} of {len(options)} meet every requirement at every validation draw; the chosen one: "
+        + "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in v.requirements)
+        + f"; objective {v.objective:.4g} N"
+    )
+    selection = {
+        "candidates": len(options),
+        "holding": held,
+        "chosen": chosen,
+        "validation_draws": {u.name: draws[:, i].tolist() for i, u in enumerate(problem.uncertain)},
+        "validation": v.row(),
+    }
+    log(
+        f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "
+        f"{describe_draws(problem.uncertain, session.held_out)}, held out, x {len(problem.scenarios)} scenario(s) ..."
+    )
+    start, start_trace = background.result() if background else (None, None)
+    verdict = judge(options[chosen], session.held_out, problem, session.base, o.judge_dt)
+    return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
