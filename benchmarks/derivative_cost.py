@@ -45,7 +45,8 @@ def main(argv=None):
     cj.use_all_cores()  # as `coopjax tune`: every core, and XLA's widest vectors
     from tuning import constrained
     from tuning.evaluate import Evaluator
-    from tuning.problem import Problem, expand_params, starting_points
+    from tuning.problem import Problem, expand_params
+    from tuning.training import starting_points
     from tuning.tuners import Query
     from tuning.tuners.adam import AdamAL
 

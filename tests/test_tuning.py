@@ -10,7 +10,7 @@ import optax
 import pytest
 
 import coopjax as cj
-from tuning import constrained, driver
+from tuning import constrained, driver, training
 from tuning import problem as pb
 from tuning.evaluate import Evaluator
 from tuning.tuners import Query
@@ -50,7 +50,7 @@ def test_multiplier_update_raises_the_penalty_only_while_the_violation_stalls():
 @pytest.fixture(scope="module")
 def point():
     masses = np.asarray([1.0, 5.0])
-    t = jax.jit(lambda th: pb.terms(th, BASE, PROBLEM, jnp.asarray(masses)))(jnp.asarray(THETA))
+    t = jax.jit(lambda th: training.terms(th, BASE, PROBLEM, jnp.asarray(masses)))(jnp.asarray(THETA))
     assert float(np.max(t.c)) > 0.1, "the test point must violate the grip constraint somewhere"
     mult = constrained.Multipliers(jnp.full((2, 2), 3.0), jnp.full(2, 10.0), jnp.full(2, jnp.inf))
     return masses, mult
@@ -62,7 +62,7 @@ def point():
 @pytest.mark.parametrize("mode", ["forward", "reverse"])
 def test_gradients_of_the_constrained_objective_match_central_differences(point, mode):
     masses, mult = point
-    L_fn = jax.jit(lambda th: constrained.lagrangian(*pb.terms(th, BASE, PROBLEM, jnp.asarray(masses))[:2], mult))
+    L_fn = jax.jit(lambda th: constrained.lagrangian(*training.terms(th, BASE, PROBLEM, jnp.asarray(masses))[:2], mult))
     ev = Evaluator(PROBLEM, BASE, AdamAL.scalar)(Query(THETA, masses, "gradient", mode, mult))
     np.testing.assert_allclose(ev.value, L_fn(jnp.asarray(THETA)), rtol=1e-12)
     h = 1e-6

@@ -13,7 +13,8 @@ The modules:
 
     design.py       where the uncertain parameters are drawn: training, validation, held-out
     problem_file.py problem files (TOML): read, with errors that name the line; written
-    problem.py      the problem, its terms (`terms`), the starting points
+    problem.py      the problem as data: what is tuned, uncertain, minimised, required (each requirement's slack)
+    training.py     its training algebra: the differentiable terms (`terms`), the starting points
     shorthands.py   the default problem's flags: its settings' own, and aliases
     judging.py      how an answer is judged (`judge`) and selected (`select`)
     constrained.py  an augmented Lagrangian on top of optax
@@ -35,7 +36,8 @@ from tuning.session import Options, Session, Tuned, prepare, run
 from tuning.design import Uncertain
 from tuning.driver import Budget
 from tuning.judging import Verdict, judge, select
-from tuning.problem import Objective, Problem, Requirement, Terms, from_log, terms, to_log
+from tuning.problem import Objective, Problem, Requirement, from_log, to_log
+from tuning.training import Terms, terms
 from tuning.tuners import TUNERS
 
 __all__ = [

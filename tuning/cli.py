@@ -23,7 +23,6 @@ from coopjax.errors import InputError
 from coopjax.io import Outputs, write_json
 from tuning import driver, report, session, shorthands
 from tuning.api import DEFAULT_METHOD
-from tuning.design import describe as describe_draws
 from tuning.problem import Problem
 from tuning.studies import pareto, race
 from tuning.tuners import TUNERS
@@ -273,13 +272,7 @@ def _tune(prepared, files, resume: bool, quiet: bool) -> int:
     recorder = driver.Checkpoint(files["checkpoint"], resume)
     if resume:  # a checkpoint that is not this run's is refused before anything starts or prints
         recorder.saved(driver.identity(tuner, problem, prepared.starts(), prepared.options.seed))
-    plan = tuner.plan_text(len(problem.names), prepared.options.starts)
-    print(
-        f"tuning {', '.join(problem.names)} with {tuner.name}: {plan}; "
-        f"{problem.switch} model ({problem.config.method}, "
-        + ", ".join(f"{c.scenario} dt = {c.dt:g} s" for c in problem.configs)
-        + f"); {describe_draws(problem.uncertain, problem.training_draws())} per step"
-    )
+    report.opening(prepared)
     interrupts.report_with(
         lambda: (
             f"the checkpoint {files['checkpoint']} is kept; add --resume to the same command to continue"
@@ -301,13 +294,4 @@ def _tune(prepared, files, resume: bool, quiet: bool) -> int:
         report.plots(prepared, tuned, files, out)
     recorder.discard()
     interrupts.report_with(lambda: None)
-    report.print_table(tuned.start, tuned.verdict, prepared.first, tuned.params, problem)
-    if nulls:
-        print(f"({len(nulls)} figure(s) that are not finite are null in {files['out']})")
-    r = tuned.result
-    print(
-        f"{r.trajectories} trajectories, {r.elapsed:.0f} s of tuning (+ {r.compile_s:.0f} s compiling), "
-        f"{time.perf_counter() - start:.0f} s in all"
-    )
-    print(f"wrote {files['out']}, {files['history']} and {files['traces']}")
-    return report.exit_code(tuned.verdict)
+    return report.closing(prepared, tuned, files, nulls, time.perf_counter() - start)

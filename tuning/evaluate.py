@@ -29,7 +29,8 @@ import numpy as np
 from coopjax import devices
 from coopjax.config import Config
 from coopjax.params import ROBOTS, split_name
-from tuning.problem import Problem, bound_values, combine, params_for, run_metrics
+from tuning.problem import Problem
+from tuning.training import bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
 
 OUTPUTS = ("f", "c", "parts", "min_swi")  # what a Jacobian is taken of

@@ -7,14 +7,14 @@ held (`fixed`), what the answer must hold for (`uncertain` parameters, each a bo
     minimise   f = sum_j weight_j * over_j(metric_j)                 over the draws x scenarios
     subject to every requirement at every training draw              (metric >= or <= its bound)
 
-- `over` is `max`, `mean` or `cvar:ALPHA` (the mean of the worst ALPHA share). In training a `max`
-  is a smooth maximum (`aggregate`, `temperature`), so the worst draw is pushed down, not the average
-  one; judging takes the hard one.
-- A requirement is a constraint per training draw, c <= 0, in the metric's unit (lengths in mm):
-  `metric - bound` or `bound - metric`. The grip requirement `min_grip >= F_lim` is special: on
-  F = F_lim the hard switch slides and min_grip sits exactly there, flat, so training uses the RMS
-  shortfall below F_lim over the grip window, `c = sqrt(slip + eps^2) - eps` (zero while the grip
-  holds, smooth, growing with the depth and duration of a loss), and judging allows `HOLD_TOLERANCE`.
+- `over` is `max`, `mean` or `cvar:ALPHA` (the mean of the worst ALPHA share).
+- Each requirement evaluates its own slack (`Requirement.slack`, `met`): the one rule training
+  (`tuning.training`, which turns it into constraints) and judging (`tuning.judging`) both apply.
+  The grip requirement `min_grip >= F_lim` is met within `HOLD_TOLERANCE`: on F = F_lim the hard
+  switch slides and min_grip sits there, flat.
+- Every field is a declared setting (`coopjax.config.setting`): its file key, flag, unit, help and
+  check live on the field, and the problem file (`tuning.problem_file`), the command's flags
+  (`tuning.shorthands`) and `validate` are generated from them.
 - Training runs the problem's switch, under the sliding-mode integrator for the hard one at each
   scenario's coarsest step within the accuracy tolerances; `tuning.design` places the training,
   validation and held-out draws, which never meet.
@@ -31,19 +31,16 @@ import dataclasses
 import math
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import devices, scenarios
+from coopjax import scenarios
 from coopjax.config import Config, check_setting, setting
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS
 from coopjax.objectives import METRICS
 from coopjax.objectives.base import missing_windows
 from coopjax.params import PARAMETERS, Params, make_params, split_name
-from coopjax.simulation import metrics_of
-from coopjax.stability import stable_dt
 from tuning import design, problem_file
 from tuning.design import Uncertain
 
@@ -62,7 +59,6 @@ TRAIN_DT = INTEGRATORS["filippov"].converged_dt[("carry", "hard")]
 SURROGATE_DT = 2.5e-4  # s: plain RK4 on the smooth surrogates (docs/tuning.md)
 SWITCHES = ("hard", "blend", "smooth", "straight_through")
 AGGREGATES = ("smoothmax", "cvar", "max", "mean")
-EPS_DEFICIT = 0.01  # N: the smoothing of c = sqrt(slip + eps^2) - eps near 0
 
 
 def bounds(name: str) -> tuple[float, float]:
@@ -110,7 +106,6 @@ def expand_params(text: str) -> tuple[str, ...]:
 
 
 TRAINING_METRICS = ("min_grip", "peak_grip", "peak_hold", "slip", "rms_lag", "min_swi")
-SCALE = {"m": 1e-3}  # a requirement's constraint is in its metric's unit, except lengths: in mm
 KINDS = ("at_least", "at_most")
 
 
@@ -153,6 +148,19 @@ class Requirement(NamedTuple):
     def text(self) -> str:
         where = f" on {', '.join(self.scenarios)}" if self.scenarios else ""
         return f"{self.metric} {'>=' if self.kind == 'at_least' else '<='} {self.bound}{where}"
+
+    @property
+    def tolerance(self) -> float:
+        """How far below its bound the grip requirement is still met (`HOLD_TOLERANCE`); 0 otherwise."""
+        return HOLD_TOLERANCE if self.is_grip else 0.0
+
+    def slack(self, value, bound):
+        """How far `value` clears the bound, in the metric's unit (negative: missed); NumPy or JAX."""
+        return value - bound if self.kind == "at_least" else bound - value
+
+    def met(self, value, bound):
+        """Met by the one rule of training and judging: the slack clears minus the tolerance."""
+        return self.slack(value, bound) >= -self.tolerance
 
     def bound_values(self, params):
         """The bound per sample of `params` (a per-robot parameter: its lower robot's value for
@@ -501,176 +509,3 @@ def to_log(values: dict[str, float], names) -> np.ndarray:
 
 def from_log(theta, names) -> dict[str, float]:
     return {n: float(np.exp(v)) for n, v in zip(names, np.asarray(theta))}
-
-
-class Surrogate(NamedTuple):
-    """Widths of the smooth switch and contact (docs/model.md, "Smooth surrogates"), with switch != 'hard'."""
-
-    k_F: float  # N
-    k_c: float  # N
-    eps_delta: float  # m
-
-
-NARROW = Surrogate(k_F=0.1, k_c=0.1, eps_delta=2e-5)
-
-
-def params_for(base: Params, problem: Problem, theta, draws) -> Params:
-    """Parameter sets for starts x draws: theta is (K, n) log-values, draws (M, p) values of the
-    uncertain parameters (or (M,) of the one); batch K * M, sample k * M + m is start k at draw m.
-    Per-robot names (`K_GP_L`) set one robot. `base` carries the fixed values (`Problem.base`)."""
-    K = theta.shape[0]
-    draws = jnp.asarray(draws, theta.dtype)
-    draws = draws[:, None] if draws.ndim == 1 else draws
-    M = draws.shape[0]
-    values = {n: jnp.repeat(jnp.exp(theta[:, i]), M) for i, n in enumerate(problem.names)}
-    values |= {u.name: jnp.tile(draws[:, i], K) for i, u in enumerate(problem.uncertain)}
-    if problem.switch != "hard":
-        values |= {k: jnp.full((K * M,), v, theta.dtype) for k, v in NARROW._asdict().items()}
-    if "M_b" not in values:  # every leaf carries the batch
-        values["M_b"] = jnp.full((K * M,), base.M_b, theta.dtype)
-    return base.replace(**values)
-
-
-class Terms(NamedTuple):
-    """Per start k: the objective f (K,) (N); the constraints c (K, Q), one column per requirement
-    and draw (`Problem.constraint_columns`), satisfied at <= 0; the objective terms' weighted values
-    per case, `parts` (K, P) (`Problem.objective_columns`, concatenated); the grip margin `min_swi`
-    (K, G) at the grip requirement's cases; `holds` (K, Q), each requirement met by the judge's rule;
-    and every metric per case (K, S * M) (NaN where its scenario does not read it)."""
-
-    f: jax.Array
-    c: jax.Array
-    parts: jax.Array
-    min_swi: jax.Array
-    holds: jax.Array
-    metrics: dict
-
-
-def aggregate(x, over: str, problem: Problem | None = None, axis=-1):
-    """`over` of x along `axis`: max, mean or cvar:ALPHA. With a problem (training), a max is its
-    `aggregate`: a smooth maximum by default."""
-    if over == "mean":
-        return x.mean(axis)
-    if over.startswith("cvar"):
-        alpha = float(over.split(":")[1]) if ":" in over else problem.cvar_alpha
-        k = max(1, math.ceil(alpha * x.shape[axis]))
-        return jnp.mean(jnp.sort(x, axis=axis)[..., -k:], axis=axis)
-    if problem is None or problem.aggregate == "max":
-        return x.max(axis)
-    if problem.aggregate == "smoothmax":
-        T = problem.temperature
-        return T * jax.nn.logsumexp(x / T, axis=axis)
-    return aggregate(x, problem.aggregate if problem.aggregate == "mean" else "cvar", problem, axis)
-
-
-def deficit(slip):
-    """c = sqrt(slip + eps^2) - eps: the RMS grip shortfall (N), smooth at 0 where sqrt is not."""
-    return jnp.sqrt(slip + EPS_DEFICIT**2) - EPS_DEFICIT
-
-
-def requirement_values(r: Requirement, metrics: dict, bound, slip=None):
-    """A requirement's constraint per case (<= 0 when met) and whether it is met by the judge's rule."""
-    value = metrics[r.metric]
-    scale = SCALE.get(METRICS[r.metric].unit, 1.0)
-    if r.is_grip:
-        return deficit(slip), value >= bound - HOLD_TOLERANCE
-    if r.kind == "at_least":
-        return (bound - value) / scale, value >= bound
-    return (value - bound) / scale, value <= bound
-
-
-def run_metrics(config: Config, params: Params, checkpoint: bool | str = True) -> dict:
-    """The training metrics of one scenario's runs, as floats (`finite` 1 or 0), over every local
-    device; under the caller's jit or derivative."""
-    m = devices.run(metrics_of(config, checkpoint), params, shard_traced=True)
-    return {n: m[n].astype(params.dtype) for n in config.metrics} | {"finite": m.finite.astype(params.dtype)}
-
-
-def bound_values(problem: Problem, params: Params) -> dict:
-    """Per requirement whose bound names a parameter: its value per sample."""
-    return {i: r.bound_values(params) for i, r in enumerate(problem.require) if isinstance(r.bound, str)}
-
-
-def combine(problem: Problem, runs: list[dict], bounds: dict, K: int) -> Terms:
-    """The problem's terms from its runs: `runs[s]` maps each metric of scenario s to its values per
-    sample (K starts x M draws, start-major), `bounds` is `bound_values`. Pure JAX: the evaluator
-    differentiates it apart from the runs, so that programs of the runs are shared between problems."""
-    B = next(iter(runs[0].values())).shape[-1]
-    M = B // K
-    dtype = next(iter(runs[0].values())).dtype
-    nan = jnp.full((K, M), jnp.nan, dtype)
-    names = dict.fromkeys(n for m in runs for n in m)
-    cases = {n: jnp.concatenate([m[n].reshape(K, M) if n in m else nan for m in runs], axis=1) for n in names}
-    parts, f = [], 0.0
-    for o, cols in zip(problem.minimise, problem.objective_columns(M)):
-        x = o.weight * cases[o.metric][:, cols]
-        parts.append(x)
-        f = f + aggregate(x, o.over, problem)
-    c, holds = [], []
-    for i, r in enumerate(problem.require):
-        cols = columns_of(problem.scenarios, r, M)
-        bound = bounds.get(i, r.bound)
-        if jnp.ndim(bound):
-            bound = jnp.tile(jnp.reshape(bound, (K, M)), (1, len(cols) // M))
-        slip = cases["slip"][:, cols] if r.is_grip else None
-        ci, hi = requirement_values(r, {r.metric: cases[r.metric][:, cols]}, bound, slip)
-        c.append(ci)
-        holds.append(hi)
-    grip = problem.grip_columns(M)
-    return Terms(
-        f=f,
-        c=jnp.concatenate(c, axis=1) if c else jnp.zeros((K, 0), dtype),
-        parts=jnp.concatenate(parts, axis=1),
-        min_swi=cases["min_swi"][:, grip] if len(grip) else jnp.zeros((K, 0), dtype),
-        holds=jnp.concatenate(holds, axis=1) if holds else jnp.zeros((K, 0), bool),
-        metrics=cases,
-    )
-
-
-def terms(theta, base: Params, problem: Problem, draws, checkpoint: bool | str = True) -> Terms:
-    """Objective and constraints of every start at every draw of every scenario; theta is (K, n)
-    log-values, draws (M, p) (or (M,) with one uncertain parameter). Pure: jit it, differentiate it
-    (`jax.grad` of a scalar of `f` and `c`, as an optax loop does). The batch is split over every
-    local device (`devices.run`).
-
-    Args:
-      theta: (K, n) log-values of `problem.names`.
-      base: every other parameter, a single set, with the problem's fixed values (`Problem.base`).
-      problem: the problem.
-      draws: the uncertain parameters' values (`Problem.training_draws`).
-      checkpoint: the reverse-mode memory policy of `coopjax.simulate`.
-
-    Returns:
-      `Terms`: f (K,), c (K, Q), parts, min_swi, holds and the metrics per case.
-    """
-    params = params_for(base, problem, theta, draws)
-    runs = [run_metrics(config, params, checkpoint) for config in problem.configs]
-    return combine(problem, runs, bound_values(problem, params), theta.shape[0])
-
-
-def starting_points(
-    problem: Problem, base: Params, first: dict[str, float], count: int, spread: float, seed: int
-) -> np.ndarray:
-    """The first start (log of `first`, clipped to the box), then `count - 1` log-uniform draws within
-    x/÷ e^spread of it, each stable at the training step: a draw whose linearised loop needs dt below
-    1.5 x the training step is drawn again (up to 50 rounds), so no start begins where its very first
-    step would blow up. Every tuner starts from these points."""
-    names = problem.names
-    lo, hi = problem.log_bounds()
-    base = problem.base(base)
-    start = np.clip(to_log(first, names), lo, hi)
-    rng = np.random.default_rng(seed)
-    points = [start]
-    a, b = np.maximum(lo, start - spread), np.minimum(hi, start + spread)
-    for _ in range(50):
-        if len(points) >= count:
-            break
-        draws = a + (b - a) * rng.random((4 * count, len(names)))
-        params = base.replace(M_b=np.ones(len(draws)), **{n: np.exp(draws[:, i]) for i, n in enumerate(names)})
-        limit, _ = stable_dt(params, problem.config)
-        points += [d for d, ok in zip(draws, limit >= 1.5 * problem.train_dt) if ok]
-    if len(points) < count:
-        raise InputError(
-            f"found only {len(points)} stable starting points in 50 rounds; try a smaller spread", "spread"
-        )
-    return np.stack(points[:count])

@@ -12,6 +12,7 @@ from coopjax import scenarios
 from coopjax.io import Outputs
 from coopjax.objectives import METRICS
 from coopjax.params import PARAMETERS, split_name
+from tuning.design import describe as describe_draws
 from tuning.plots import plot_history, plot_traces
 from tuning.problem import HOLD_TOLERANCE, Problem
 from tuning.session import Session, Tuned, ends, trace
@@ -48,6 +49,32 @@ def data(session: Session, tuned: Tuned) -> dict:
         "compile_seconds": result.compile_s,
         "selection": tuned.selection,
     }
+
+
+def opening(session: Session) -> None:
+    """The run's first line: what is tuned, how, on which model and draws."""
+    problem, tuner = session.problem, session.tuner
+    plan = tuner.plan_text(len(problem.names), session.options.starts)
+    print(
+        f"tuning {', '.join(problem.names)} with {tuner.name}: {plan}; "
+        f"{problem.switch} model ({problem.config.method}, "
+        + ", ".join(f"{c.scenario} dt = {c.dt:g} s" for c in problem.configs)
+        + f"); {describe_draws(problem.uncertain, problem.training_draws())} per step"
+    )
+
+
+def closing(session: Session, tuned: Tuned, files: dict, nulls: list, seconds: float) -> int:
+    """The before/after table, what was written, and the exit code."""
+    print_table(tuned.start, tuned.verdict, session.first, tuned.params, session.problem)
+    if nulls:
+        print(f"({len(nulls)} figure(s) that are not finite are null in {files['out']})")
+    r = tuned.result
+    print(
+        f"{r.trajectories} trajectories, {r.elapsed:.0f} s of tuning (+ {r.compile_s:.0f} s compiling), "
+        f"{seconds:.0f} s in all"
+    )
+    print(f"wrote {files['out']}, {files['history']} and {files['traces']}")
+    return exit_code(tuned.verdict)
 
 
 def exit_code(verdict) -> int:

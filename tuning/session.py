@@ -28,7 +28,8 @@ from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
 from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, select
-from tuning.problem import Problem, from_log, starting_points, to_log
+from tuning.problem import Problem, from_log, to_log
+from tuning.training import starting_points
 from tuning.tuners import Tuner
 
 

@@ -21,7 +21,7 @@ import dataclasses
 
 import numpy as np
 
-from tuning.tuners.base import Query, Tuner, least_margin, register, worst_constraint
+from tuning.tuners.base import Best, Query, Tuner, least_margin, register, worst_constraint
 from tuning.tuners.cmaes import CMAES
 from tuning.tuners.screen_slp import ScreenSLP, _outputs, merit, trial_steps, trust_update
 
@@ -40,7 +40,7 @@ class State:
     trials: np.ndarray | None = None  # (R, n)
     predicted: np.ndarray | None = None  # (R,)
     iterations: int = 0  # of the current polish
-    best: tuple = (False, np.inf, None)  # (holds, phi, theta) of the best polished point
+    best: Best = Best()  # the best polished point, by merit
     history: dict = dataclasses.field(default_factory=dict)
 
 
@@ -97,10 +97,10 @@ class CMAESPolished(Tuner):
         state.cma = self.cma.tell(state.cma, query, ev)
         state.generations += 1
         best = state.cma.best
-        if state.generations >= self.every and best and best[0]:
+        if state.generations >= self.every and best.holds:
             state.generations = 0
-            if state.origin is None or not np.array_equal(best[2], state.origin):
-                state.origin = np.asarray(best[2]).copy()  # a new best from CMA-ES: polish it
+            if state.origin is None or not np.array_equal(best.theta, state.origin):
+                state.origin = np.asarray(best.theta).copy()  # a new best from CMA-ES: polish it
                 state.theta, state.radius = state.origin.copy(), self.radius
             if state.radius > 0:
                 state.iterations, state.phase = 0, "jacobian"
@@ -156,14 +156,13 @@ class CMAESPolished(Tuner):
 
     @staticmethod
     def _keep(state, holds, phi, theta):
-        if np.isfinite(phi) and (holds, -phi) > (state.best[0], -state.best[1]):
-            state.best = (holds, phi, np.asarray(theta).copy())
+        state.best = state.best.told(holds, phi, theta)
 
     def history(self, state) -> dict:
         return state.history
 
     def candidates(self, state):
-        polished = [state.best[2]] if state.best[2] is not None else []
+        polished = [state.best.theta] if state.best.theta is not None else []
         return polished + self.cma.candidates(state.cma)
 
     def plan_text(self, n_params, starts):

@@ -51,8 +51,18 @@ from scipy.optimize import linprog
 from scipy.stats import qmc
 
 from coopjax.errors import InputError
-from tuning.problem import aggregate
-from tuning.tuners.base import Evaluation, Query, Tuner, concatenate, least_margin, register, setting, worst_constraint
+from tuning.training import aggregate
+from tuning.tuners.base import (
+    Best,
+    Evaluation,
+    Query,
+    Tuner,
+    concatenate,
+    least_margin,
+    register,
+    setting,
+    worst_constraint,
+)
 from tuning.tuners.cmaes import sample, strategy, told
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
@@ -72,7 +82,7 @@ class State:
     predicted: np.ndarray | None = None  # (K, R) the linear programs' predicted falls of phi there
     pending: np.ndarray | None = None  # (K,) the lane's iterate is new: its Jacobian comes next
     queue: list = dataclasses.field(default_factory=list)  # the screen's next best points, for refills
-    best: list = dataclasses.field(default_factory=list)  # per local solve: (holds, phi, theta) of its best point
+    best: list = dataclasses.field(default_factory=list)  # per local solve: its best point by merit (`Best`)
     lane: list = dataclasses.field(default_factory=list)  # which solve (index into best) each lane runs
     history: dict = dataclasses.field(default_factory=dict)
     screened: dict | None = None  # the screen's summary
@@ -435,7 +445,7 @@ class ScreenSLP(Tuner):
         state.radius = np.full(K, self.radius)
         state.pending = np.ones(K, bool)
         state.queue = [query.thetas[i].copy() for i in rest]
-        state.best = [(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen]
+        state.best = [Best(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen]
         state.lane = list(range(K))
         state.screened = {
             "points": len(query.thetas),
@@ -447,9 +457,7 @@ class ScreenSLP(Tuner):
         return state
 
     def _keep_best(self, state, k, holds, phi, theta):
-        best = state.best[state.lane[k]]
-        if np.isfinite(phi) and (bool(holds), -phi) > (best[0], -best[1]):
-            state.best[state.lane[k]] = (bool(holds), float(phi), theta.copy())
+        state.best[state.lane[k]] = state.best[state.lane[k]].told(holds, phi, theta)
 
     def _tell_jacobian(self, state, query, ev):
         if self.jacobian == "fd":
@@ -495,7 +503,7 @@ class ScreenSLP(Tuner):
             state.trials[k] = state.theta[k]
             state.radius[k], state.pending[k] = self.radius, True
             state.lane[k] = len(state.best)
-            state.best.append((False, np.inf, state.theta[k].copy()))
+            state.best.append(Best(False, np.inf, state.theta[k].copy()))
         if (state.predicted > 0).any():
             state.phase = "trials"
         elif state.pending.any():
@@ -564,8 +572,8 @@ class ScreenSLP(Tuner):
             return None
         phi = state.current["phi"]
         live = int((state.radius > 0).sum())
-        best = min((b for b in state.best if b[0]), key=lambda b: b[1], default=None)
-        text = f"best holding solve: merit {best[1]:.4g} N" if best else "no solve holds yet"
+        best = min((b for b in state.best if b.holds), key=lambda b: b.value, default=None)
+        text = f"best holding solve: merit {best.value:.4g} N" if best else "no solve holds yet"
         return (
             f"step {state.step:3d}/{self.steps}  merit of the lanes {np.nanmin(phi):.4g} to "
             f"{np.nanmax(phi[np.isfinite(phi)]) if np.isfinite(phi).any() else float('nan'):.4g} N, "
@@ -578,6 +586,6 @@ class ScreenSLP(Tuner):
     def candidates(self, state):
         """Each local solve's best evaluated point (holding first, then by merit); the given starts
         if nothing ran."""
-        order = sorted(range(len(state.best)), key=lambda k: (not state.best[k][0], state.best[k][1]))
-        out = [state.best[k][2] for k in order if np.isfinite(state.best[k][1])]
+        order = sorted(range(len(state.best)), key=lambda k: (not state.best[k].holds, state.best[k].value))
+        out = [state.best[k].theta for k in order if np.isfinite(state.best[k].value)]
         return out or list(state.starts)
