@@ -45,6 +45,7 @@ SUFFIX, ATIME = "-cache", "-atime"  # JAX's names for an entry and its access ti
 _notes: list[str] = []  # what the run should hear about its cache, said once at its end
 _compiled = [False]
 _listening = [False]
+_write_failed = [False]  # JAX could not write an entry this run: what it wrote may be cut short
 
 
 def location(environ=os.environ) -> tuple[str | None, bool]:
@@ -198,19 +199,28 @@ def verify(folder: str) -> list[str]:
     return removed
 
 
-def record(folder: str) -> None:
-    """Add the sums of the entries this run wrote (at its end: JAX writes them as it compiles)."""
+def record(folder: str, trust_new: bool = True) -> None:
+    """Add the sums of the entries this run wrote (at its end: JAX writes them as it compiles).
+    `trust_new=False` (a write failed this run, so an entry may be cut short): remove them instead."""
     sums = _read_sums(folder)
     for name in os.listdir(folder):
         path = os.path.join(folder, name)
         if name.endswith(SUFFIX) and not (isinstance(sums.get(name), list) and sums[name][:3] == _stat(path)):
-            sums[name] = _stat(path) + [_sha(path)]
+            if trust_new:
+                sums[name] = _stat(path) + [_sha(path)]
+                continue
+            for doomed in (path, path[: -len(SUFFIX)] + ATIME):
+                try:
+                    os.unlink(doomed)
+                except FileNotFoundError:
+                    pass
+            sums.pop(name, None)
     _write_sums(folder, sums)
 
 
 def _record_quietly(folder: str) -> None:
     try:
-        record(folder)
+        record(folder, trust_new=not _write_failed[0])
     except OSError:  # a full disk or a vanished folder: the next run checks (and drops) what is unknown
         pass
 
@@ -234,6 +244,8 @@ def _listen() -> None:
                 if "reading" in text
                 else f"the compile cache could not be written ({what}); a later run compiles those programs again"
             )
+            if "reading" not in text:
+                _write_failed[0] = True
             if not any(n.startswith("the compile cache could not") for n in _notes):
                 _notes.append(note)
             return

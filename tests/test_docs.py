@@ -104,3 +104,11 @@ def test_every_flag_the_docs_name_is_a_flag(doc, command, flag):
 def test_every_benchmark_the_docs_run_is_there(doc, module):
     path = os.path.join(ROOT, *module.split(".")) + (".py" if "." in module else "")
     assert os.path.exists(path), f"{doc} runs python -m {module}, which is not there"
+
+
+def test_the_problem_files_training_keys_are_the_declared_ones():
+    from tuning.problem import Problem
+
+    row = next(line for line in TEXT["docs/tuning.md"].splitlines() if line.startswith("| `[training]` |"))
+    quoted = re.findall(r"`(\w+)`", row.split("|")[2])
+    assert quoted == [f.metadata["key"].split(".", 1)[1] for f in Problem.settings("training")]

@@ -148,3 +148,21 @@ def test_problem_errors_without_a_file_name_the_field():
         Problem(minimise=()).validate()
     with pytest.raises(InputError, match="its bound K_GP is tuned"):
         Problem(names=("K_GP",), require=(Requirement("peak_grip", "at_most", "K_GP"),)).validate()
+
+
+def test_a_setting_declared_on_the_problem_is_a_file_key_a_flag_and_a_check(tmp_path):
+    # `n_validation` is declared once, on `Problem`: the file's key, the flag and the check follow.
+    from tuning import shorthands
+    from tuning.cli import build_problem
+
+    path = _file(tmp_path, 'tune = "gains"\n[[minimise]]\nmetric = "rms_lag"\n[training]\nn_validation = 5\n')
+    problem = Problem.from_toml(path)
+    assert problem.n_validation == 5 and len(problem.validation_draws()) == 5
+    assert Problem.from_toml(_file(tmp_path, problem.to_toml())) == problem
+    args = cli.build_parser().parse_args(["tune", "--validation-draws", "5", "--params", "gains"])
+    assert build_problem(args).n_validation == 5
+    assert "--validation-draws" in [flag for flag, _, _ in shorthands.flags()]
+    with pytest.raises(InputError, match="n_validation is 1: at least 2"):
+        Problem(n_validation=1).validate()
+    with pytest.raises(InputError, match="n_validation is 'many': expected a whole number"):
+        Problem(n_validation="many").validate()

@@ -18,9 +18,9 @@ import jax
 
 from coopjax import devices
 from coopjax.cli import interrupts
-from coopjax.cli.common import BadInput, check_output
+from coopjax.cli.common import BadInput, add_setting, check_output
 from coopjax.errors import InputError
-from coopjax.io import Outputs, write_json
+from coopjax.io import Outputs, one_run, write_json
 from tuning import driver, report, session, shorthands
 from tuning.api import DEFAULT_METHOD
 from tuning.problem import Problem
@@ -56,27 +56,6 @@ FIELD_FLAGS = {dest: flag for flag, dest, _ in shorthands.flags()} | {
 
 def _dest(flag: str) -> str:
     return "tuner_" + flag[2:].replace("-", "_")
-
-
-def _declared(p, field, dest: str, default=None, text: str | None = None) -> None:
-    """A flag from a declared setting (`coopjax.config.setting`): its help, kind and choices."""
-    m = field.metadata
-    if m["kind"] is bool:  # a switch that sets the opposite of the default
-        p.add_argument(
-            m["flag"], dest=dest, action="store_const", const=not field.default, default=None, help=m["help"]
-        )
-        return
-    unit = f", {m['unit']}" if m.get("unit") else ""
-    shown = f" (default {field.default:g})" if isinstance(field.default, float) else f" (default {field.default})"
-    p.add_argument(
-        m["flag"],
-        dest=dest,
-        type=m["kind"] or type(field.default),
-        default=default,
-        choices=m["choices"],
-        metavar=None if m["choices"] else m["flag"][2:].upper().replace("-", "_"),
-        help=text or m["help"] + unit + (shown if field.default is not None else ""),
-    )
 
 
 def add_parser(sub):
@@ -120,13 +99,13 @@ def add_parser(sub):
                 action="append" if declared.repeat else "store",
             )
         else:
-            _declared(problem, declared, dest)
+            add_setting(problem, declared, dest)
     options = p.add_argument_group("the session")
     for field in dataclasses.fields(session.Options):
-        _declared(options, field, field.name, field.default)
+        add_setting(options, field, field.name, field.default)
     for flag, owners in tuner_flags().items():
         text = "; ".join(f"{cls.name}: {f.metadata['help']} (default {f.default})" for cls, f in owners)
-        _declared(p, owners[0][1], _dest(flag), text=text)
+        add_setting(p, owners[0][1], _dest(flag), text=text)
     p.add_argument("--out", default=DEFAULT_OUT, help=f"result file (default {DEFAULT_OUT}); plots go beside it")
     p.add_argument("--resume", action="store_true", help="continue an interrupted plain run from OUT.ckpt")
     p.add_argument("--compare", action="store_true", help="race every registered tuner over --seeds on one clock")
@@ -167,13 +146,18 @@ def _numbers(text, what, cast):
 
 def build_problem(args) -> Problem:
     """The problem of a run: the --problem file, or the default problem with its flags."""
-    given = {dest: getattr(args, dest) for _, dest, _ in shorthands.flags() if getattr(args, dest) is not None}
+    given = _given(args)
     if args.problem is not None:
         if given:
             flag = next(f for f, d, _ in shorthands.flags() if d in given)
             raise BadInput(f"{flag} contradicts --problem {args.problem}: state it in the file instead")
         return Problem.from_toml(args.problem)
     return shorthands.problem_from(given)
+
+
+def _given(args) -> dict:
+    """The default problem's flags that were given."""
+    return {dest: getattr(args, dest) for _, dest, _ in shorthands.flags() if getattr(args, dest) is not None}
 
 
 def make_tuner(args):
@@ -217,8 +201,10 @@ def run(args) -> int:
         devices.request_devices(args.devices or None)  # a count asked for is not warned about
     except InputError:  # the backend is already up (a test, or an embedding program): keep its devices
         pass
+    notes = Problem.unstated(args.problem) if args.problem is not None and not _given(args) else []
     if args.show_problem:  # before any output is checked: it writes nothing
-        print(build_problem(args).to_toml(), end="")
+        problem = build_problem(args)
+        print("".join(f"# note: {n}\n" for n in notes) + problem.to_toml(), end="")
         return 0
     check_output(args.out, "--out", ("json",))
     files = report.paths(args.out)
@@ -227,6 +213,11 @@ def run(args) -> int:
         check_output(files[key], f"--out (its {key} file)")
     if args.compare and args.pareto:
         raise BadInput("--compare and --pareto are separate runs: choose one")
+    with one_run(args.out, "--out"):  # one run per output, checkpoint and figures
+        return _held(args, files, notes)
+
+
+def _held(args, files, notes) -> int:
     if args.resume and (args.compare or args.pareto):
         raise BadInput("--resume continues a plain run; --compare and --pareto start afresh")
     if os.path.exists(files["checkpoint"]) and not args.resume:
@@ -263,6 +254,8 @@ def run(args) -> int:
         result["config"] = {"problem": report.problem_data(problem), **prepared.describe()}
         pareto.save(result, problem, files["out"], files["pareto"])
         return 0
+    for note in notes:
+        print(f"note: {note}")
     return _tune(prepared, files, args.resume, args.quiet)
 
 

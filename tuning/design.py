@@ -37,6 +37,12 @@ VALIDATION_COUNT = 48  # selection draws
 TRAIN_SOBOL_SEED, VALIDATION_SEED, HELD_OUT_SEED = 101, 202, 303
 
 
+def shortest(x) -> str:
+    """A number as the shortest text that reads back to the same float (`5`, `0.0123456789`)."""
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
 class Uncertain(NamedTuple):
     """One uncertain parameter and its box."""
 
@@ -47,7 +53,8 @@ class Uncertain(NamedTuple):
 
     @property
     def text(self) -> str:
-        return f"{self.kind}:{self.low:g}:{self.high:g}"
+        """`kind:LOW:HIGH`, read back to the same box (shortest round-trip numbers)."""
+        return f"{self.kind}:{shortest(self.low)}:{shortest(self.high)}"
 
     def widened(self, share: float) -> "Uncertain":
         if self.kind == "loguniform":
@@ -91,6 +98,16 @@ def check(items: tuple[Uncertain, ...]) -> None:
             f"uncertain: {len(items)} parameters; at most {MAX_UNCERTAIN} (each design includes all 2^p corners)",
             "uncertain",
         )
+    for u in items:
+        real = lambda x: isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+        if u.kind not in KINDS or not (real(u.low) and real(u.high)) or not (np.isfinite([u.low, u.high]).all()):
+            raise InputError(
+                f"uncertain: {u.name}: {u.kind!r} from {u.low!r} to {u.high!r}: a box is uniform:LOW:HIGH or "
+                "loguniform:LOW:HIGH with finite numbers",
+                u.name,
+            )
+        if not u.low < u.high or (u.kind == "loguniform" and u.low <= 0):
+            raise InputError(f"uncertain: {u.name} = {u.text!r}: need LOW < HIGH (and 0 < LOW for loguniform)", u.name)
     names = [u.name for u in items]
     if len(set(names)) != len(names):
         raise InputError(f"uncertain: {', '.join(names)} names a parameter twice", "uncertain")

@@ -254,6 +254,9 @@ def load_checkpoint(path: str, ident: dict) -> dict:
         raise refuse(
             "a pickle, which is never loaded" if pickled else "not an archive of arrays with an index"
         ) from None
+    missing = [key for key in ("format", "identity", "fingerprint", "entries", "clock") if key not in index]
+    if missing:
+        raise refuse(f"its index lacks {', '.join(map(repr, missing))}")
     if index["format"] != CHECKPOINT_FORMAT:
         raise InputError(
             f"{path} was written by another version of coopjax (format {index['format']}): delete it", "resume"
@@ -269,6 +272,6 @@ def load_checkpoint(path: str, ident: dict) -> dict:
                 values["jacobian"] = {key: stored[f"e{i}.jacobian.{key}"] for key in entry["jacobian"]}
             log.append((query, Evaluation(**values)))
         clock = [(wall, used) for wall, used in index["clock"]]
-    except (KeyError, TypeError, ValueError) as error:
-        raise refuse(f"incomplete: {error}") from None
+    except Exception as error:  # noqa: BLE001 (whatever is wrong in a half-formed index: one line)
+        raise refuse(f"incomplete: {type(error).__name__} {error}") from None
     return {"identity": ident, "log": log, "clock": clock}

@@ -128,7 +128,13 @@ class Objective(NamedTuple):
 
     @property
     def alpha(self) -> float | None:
-        return float(self.over.split(":")[1]) if self.over.startswith("cvar:") else None
+        """cvar:ALPHA's share (None: not a cvar, or ALPHA is not a number; `validate` says so)."""
+        if not (isinstance(self.over, str) and self.over.startswith("cvar:")):
+            return None
+        try:
+            return float(self.over.split(":", 1)[1])
+        except ValueError:
+            return None
 
 
 class Requirement(NamedTuple):
@@ -226,6 +232,15 @@ class Problem:
         key="training.n_draws",
         check=lambda x: None if x >= 2 else "at least 2 (the range's two ends)",
     )
+    n_validation: int = setting(
+        design.VALIDATION_COUNT,
+        "validation draws on which the tuner's candidates are selected (a Sobol design of the box widened by "
+        "half the margin; never the training or the held-out draws)",
+        "--validation-draws",
+        kind=int,
+        key="training.n_validation",
+        check=lambda x: None if x >= 2 else "at least 2",
+    )
     jitter: bool = setting(
         True,
         "fresh training draws every step (the gradient tuner); false: a fixed design",
@@ -274,6 +289,28 @@ class Problem:
     )
 
     @classmethod
+    def unstated(cls, path: str) -> list[str]:
+        """What a problem file leaves to the defaults that a reader should be told: its tuned names,
+        scenarios, uncertain boxes, objective and requirements, as notes (one line each)."""
+        fields, _ = problem_file.read(path, cls.file_keys())
+        p0, notes = cls(), []
+        for name, key, default in (
+            ("names", "tune", "all 14 controller parameters"),
+            ("uncertain", "uncertain", ", ".join(f"{u.name} {u.text}" for u in p0.uncertain)),
+            ("minimise", "[[minimise]]", " + ".join(f"{o.weight:g} x {o.over} {o.metric}" for o in p0.minimise)),
+            ("require", "[[require]]", ", ".join(r.text for r in p0.require)),
+        ):
+            if name not in fields:
+                notes.append(f"{path} states no {key}: the default is taken ({default})")
+        return notes
+
+    @classmethod
+    def file_keys(cls) -> dict:
+        """A problem file's keys, as declared: the top-level ones (under None), `[training]`'s."""
+        keys = [f.metadata["key"].split(".")[0] for f in dataclasses.fields(cls)]
+        return {None: tuple(dict.fromkeys(keys)), "training": tuple(f.name for f in cls.settings("training"))}
+
+    @classmethod
     def settings(cls, table: str | None = None) -> tuple[dataclasses.Field, ...]:
         """The fields a file states in `table` ("training": `[training]` KEY = VALUE), or all of them."""
         fields = dataclasses.fields(cls)
@@ -294,7 +331,7 @@ class Problem:
     def from_toml(cls, path: str, **overrides) -> "Problem":
         """Read a problem file (docs/tuning.md, "Problem files"); `overrides` replace fields. A bad
         file raises one `InputError` naming the file, the key and the line."""
-        fields, where = problem_file.read(path, tuple(f.name for f in cls.settings("training")))
+        fields, where = problem_file.read(path, cls.file_keys())
         if isinstance(fields.get("names"), str):
             fields["names"] = expand_params(fields["names"])
         try:
@@ -367,7 +404,7 @@ class Problem:
         return design.fixed_training(self.uncertain, self.n_draws, self.margin)
 
     def validation_draws(self) -> np.ndarray:
-        return design.validation(self.uncertain, self.margin)
+        return design.validation(self.uncertain, self.margin, self.n_validation)
 
     def held_out_draws(self, count: int = 12) -> np.ndarray:
         return design.held_out(self.uncertain, count)
@@ -432,11 +469,11 @@ class Problem:
             raise InputError("minimise: give at least one objective term", "minimise")
         for o in self.minimise:
             _check_metric(o.metric, "minimise", self._on_scenarios(o))
-            if o.over not in ("max", "mean") and not (o.alpha is not None and 0 < o.alpha <= 1):
+            if o.over not in ("max", "mean") and not (o.alpha is not None and 0 < o.alpha <= 1):  # (a str)
                 raise InputError(
                     f"minimise {o.metric}: over = {o.over!r}: max, mean or cvar:ALPHA with 0 < ALPHA <= 1", "over"
                 )
-            if not (math.isfinite(o.weight) and o.weight > 0):
+            if not (isinstance(o.weight, float) and math.isfinite(o.weight) and o.weight > 0):
                 raise InputError(f"minimise {o.metric}: weight = {o.weight!r}: it must be positive", "weight")
         for r in self.require:
             _check_metric(r.metric, "require", self._on_scenarios(r))
@@ -449,12 +486,15 @@ class Problem:
                         "parameter",
                         "require",
                     )
-            elif not math.isfinite(r.bound):
-                raise InputError(f"require {r.metric}: the bound {r.bound!r} must be finite", "require")
+            elif not (isinstance(r.bound, float) and math.isfinite(r.bound)):
+                raise InputError(
+                    f"require {r.metric}: the bound {r.bound!r} must be a finite number or a parameter's name",
+                    "require",
+                )
         for f in self.settings("training"):
             check_setting(f, getattr(self, f.name))
-        for c in self.configs:
-            c.validate()
+        for c in self.configs:  # precision is the run's setting: checking a problem needs no JAX mode
+            dataclasses.replace(c, dtype=None).validate()
         return self
 
     def _on_scenarios(self, item) -> tuple[str, ...]:
@@ -493,14 +533,19 @@ def _check_metric(metric: str, where: str, on: tuple[str, ...]) -> None:
 def _objective(o) -> Objective:
     o = Objective(*o) if not isinstance(o, Objective) else o
     scen = None if o.scenarios is None else tuple([o.scenarios] if isinstance(o.scenarios, str) else o.scenarios)
-    return o._replace(weight=float(o.weight), scenarios=scen)
+    return o._replace(weight=_number(o.weight), scenarios=scen)
 
 
 def _requirement(r) -> Requirement:
     r = Requirement(*r) if not isinstance(r, Requirement) else r
     scen = None if r.scenarios is None else tuple([r.scenarios] if isinstance(r.scenarios, str) else r.scenarios)
-    bound = r.bound if isinstance(r.bound, str) else float(r.bound)
-    return r._replace(bound=bound, scenarios=scen)
+    return r._replace(bound=r.bound if isinstance(r.bound, str) else _number(r.bound), scenarios=scen)
+
+
+def _number(x):
+    """A float where `x` is a number; anything else kept as given, for `validate` to name."""
+    real = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+    return float(x) if real else x
 
 
 def to_log(values: dict[str, float], names) -> np.ndarray:

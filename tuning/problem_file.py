@@ -7,7 +7,7 @@
     [uncertain]                         # a box the answer must hold over: "loguniform:LOW:HIGH" | "uniform:LOW:HIGH"
     [[minimise]]                        # metric, over (max | mean | cvar:ALPHA), weight, scenario (optional)
     [[require]]                         # metric, at_least or at_most (a number or a parameter's name), scenario
-    [training]                          # n_draws, margin, jitter, switch, dt, aggregate, temperature, cvar_alpha
+    [training]                          # the settings `Problem` declares with key "training.NAME"
 
 A bad file is one `InputError`: the file, the key and its line.
 """
@@ -15,14 +15,17 @@ A bad file is one `InputError`: the file, the key and its line.
 from __future__ import annotations
 
 import math
+import os
 import re
+import stat
 import tomllib
 
 from coopjax.errors import InputError
 from coopjax.params import PARAMETERS, split_name
 from tuning import design
 
-TOP = ("scenario", "tune", "bounds", "fixed", "uncertain", "minimise", "require", "training")
+MAX_BYTES = 1 << 20  # a problem file is a page of TOML: anything larger is not one
+
 MINIMISE = ("metric", "over", "weight", "scenario")
 REQUIRE = ("metric", "at_least", "at_most", "scenario")
 
@@ -61,13 +64,20 @@ class _Where:
         return InputError(f"{self.path}{at}: {name + ': ' if name else ''}{message}", key or table or "problem")
 
 
-def read(path: str, training: tuple[str, ...]) -> tuple[dict, "_Where"]:
+def read(path: str, keys: dict[str, tuple[str, ...]]) -> tuple[dict, "_Where"]:
     """A problem file's fields, as `Problem`'s keywords (types and names checked; the rest is
-    `Problem.validate`'s), and where its keys are (for `locate`); `training` names the keys of
-    `[training]` (`Problem.settings("training")`)."""
+    `Problem.validate`'s), and where its keys are (for `locate`); `keys` gives the file's keys, as
+    `Problem` declares them: the top-level ones under None, each table's under its name."""
     try:
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):  # a FIFO or a device would block or never end
+            raise InputError(f"{path}: not a regular file; a problem file is a TOML file on disk", "problem")
+        if info.st_size > MAX_BYTES:
+            raise InputError(
+                f"{path}: {info.st_size:,} bytes; a problem file is at most {MAX_BYTES:,} bytes of TOML", "problem"
+            )
         with open(path, "rb") as f:
-            raw = f.read()
+            raw = f.read(MAX_BYTES + 1)
     except OSError as error:
         raise InputError(f"{path}: cannot read the problem file ({error.strerror or error})", "problem") from None
     try:
@@ -77,16 +87,18 @@ def read(path: str, training: tuple[str, ...]) -> tuple[dict, "_Where"]:
         raise InputError(f"{path}: not a text (UTF-8) file", "problem") from None
     except tomllib.TOMLDecodeError as error:
         raise InputError(f"{path}: not valid TOML: {error}", "problem") from None
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be a problem file", "problem") from None
     where = _Where(path, text)
-    return parse(data, where, training), where
+    return parse(data, where, keys), where
 
 
-def parse(data: dict, where: _Where, training: tuple[str, ...]) -> dict:
+def parse(data: dict, where: _Where, keys: dict[str, tuple[str, ...]]) -> dict:
     """`Problem`'s keywords from a parsed file. `tune` stays as written (a shorthand is expanded by
     `Problem.from_toml`); `minimise` and `require` entries are plain tuples."""
     for key in data:
-        if key not in TOP:
-            raise where.error(f"unknown key; a problem file has {', '.join(TOP)}", None, key)
+        if key not in keys[None]:
+            raise where.error(f"unknown key; a problem file has {', '.join(keys[None])}", None, key)
     fields: dict = {}
     if "scenario" in data:
         fields["scenarios"] = _names(data["scenario"], where, None, "scenario")
@@ -132,8 +144,8 @@ def parse(data: dict, where: _Where, training: tuple[str, ...]) -> dict:
     if "require" in data:
         fields["require"] = tuple(_requirement(e, i, where) for i, e in enumerate(_entries(data, "require", where)))
     for key, value in data.get("training", {}).items():
-        if key not in training:
-            raise where.error(f"unknown key; [training] has {', '.join(training)}", "training", key)
+        if key not in keys["training"]:
+            raise where.error(f"unknown key; [training] has {', '.join(keys['training'])}", "training", key)
         fields[key] = value
     return fields
 
@@ -252,7 +264,7 @@ def dump(problem) -> str:
     ]
     if p.bounds:
         lines += ["", "[bounds]                # search boxes, LOW:HIGH (defaults: `coopjax tune --help`)"]
-        lines += [f'{n} = "{low:g}:{high:g}"' for n, low, high in p.bounds]
+        lines += [f'{n} = "{design.shortest(low)}:{design.shortest(high)}"' for n, low, high in p.bounds]
     if p.fixed:
         lines += ["", "[fixed]"] + [f"{n} = {_value(v)}" for n, v in p.fixed]
     lines += ["", "[uncertain]             # what the answer must hold for"]

@@ -328,7 +328,8 @@ def run(
         "holding": held,
         "chosen": chosen,
         "validation_draws": {u.name: draws[:, i].tolist() for i, u in enumerate(problem.uncertain)},
-        "validation": v.row(),
+        # Selection runs no two-step check: its fields are left out, not written as unmeasured.
+        "validation": {k: x for k, x in v.row().items() if k not in ("step_error", "step_artefact")},
     }
     log(
         f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "

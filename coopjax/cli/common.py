@@ -61,6 +61,27 @@ def config_arguments(parser: argparse.ArgumentParser, defaults: dict | None = No
         )
 
 
+def add_setting(p, field, dest: str, default=None, text: str | None = None) -> None:
+    """A flag from a declared setting (`coopjax.config.setting`): its help, kind and choices."""
+    m = field.metadata
+    if m["kind"] is bool:  # a switch that sets the opposite of the default
+        p.add_argument(
+            m["flag"], dest=dest, action="store_const", const=not field.default, default=None, help=m["help"]
+        )
+        return
+    unit = f", {m['unit']}" if m.get("unit") else ""
+    shown = f" (default {field.default:g})" if isinstance(field.default, float) else f" (default {field.default})"
+    p.add_argument(
+        m["flag"],
+        dest=dest,
+        type=m["kind"] or type(field.default),
+        default=default,
+        choices=m["choices"],
+        metavar=None if m["choices"] else m["flag"][2:].upper().replace("-", "_"),
+        help=text or m["help"] + unit + (shown if field.default is not None else ""),
+    )
+
+
 def config_from(args) -> Config:
     """The `Config` the flags describe, validated."""
     values = {
