@@ -64,9 +64,10 @@ def test_wide_vectors_are_asked_for_where_the_cpu_has_them_and_a_users_width_is_
 
 
 def test_wide_vectors_give_the_same_answers(tmp_path):
-    """The sliding-mode step's metrics and final states in float64 and float32, with XLA's defaults
-    and with 512-bit vectors, each in a fresh process: the vector width changes the code, not the
-    arithmetic (the same bits, measured; compared here to 1e-13)."""
+    """The sliding-mode step's metrics and final states in float64, with XLA's defaults and with
+    512-bit vectors, each in a fresh process: the vector width changes the code, not the arithmetic
+    (the same bits, measured in float64 and float32; compared here to 1e-13, in float64 for the
+    suite's time)."""
     import os
     import subprocess
     import sys
@@ -74,7 +75,7 @@ def test_wide_vectors_give_the_same_answers(tmp_path):
     code = (
         "import sys, numpy as np, jax; jax.config.update('jax_enable_x64', True); import coopjax as cj; "
         "rng = np.random.default_rng(3); metrics, states = [], []\n"
-        "for dtype in ('float64', 'float32'):\n"
+        "for dtype in ('float64',):\n"
         "    p = cj.make_params(M_b=rng.uniform(0.5, 20, 8), K_GP=rng.uniform(0.1, 0.9, 8), dtype=dtype)\n"
         "    s = cj.simulate(p, 'carry', T=0.6, dtype=dtype)\n"
         "    metrics += [np.asarray(x, np.float64) for x in s.metrics]\n"

@@ -84,12 +84,13 @@ def check(fresh_dir, capsys, name: str) -> dict:
     return result
 
 
-@pytest.mark.slow  # the suite's time: peak_bound runs the same pipeline in CI (below)
+@pytest.mark.slow  # the suite's time: tests/test_session.py runs the command end to end on a tiny problem
 def test_the_default_example_runs_end_to_end(fresh_dir, capsys):
     result = check(fresh_dir, capsys, "default")
     assert result["trajectories"] == 8 * len(Problem.from_toml(_path("default")).training_draws())
 
 
+@pytest.mark.slow  # the suite's time: tests/test_session.py runs the command end to end on a tiny problem
 def test_the_peak_bound_example_runs_end_to_end(fresh_dir, capsys):
     # (robust_plant, with four uncertain parameters, and the two-scenario example run under -m slow.)
     for name in ("peak_bound",):
