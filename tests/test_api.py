@@ -142,12 +142,14 @@ def test_an_unstable_step_is_marked_not_raised_under_a_trace_and_its_derivative_
     loss = lambda m: m.crush + m.slip
     slopes = jax.jit(jax.vmap(jax.grad(lambda k: loss(run(k)))))(jnp.array([0.5, 50.0]))
     assert np.isfinite(float(slopes[0])) and np.isnan(float(slopes[1]))
-    marked = run(jnp.array([0.5, 50.0]), check_dt="mark")
+    solution = cj.simulate(
+        cj.make_params(K_GP=jnp.array([0.5, 50.0])), "paper", dt=2e-3, T=0.06, switch="blend", check_dt="mark"
+    )
+    marked = solution.metrics
     assert marked.finite.tolist() == [True, False]
     # The solution says why: the one status vocabulary of sweeps and the judge.
-    solution = cj.simulate(cj.make_params(K_GP=jnp.array([0.5, 50.0])), "paper", dt=2e-3, T=0.06, check_dt="mark")
     assert [Status(int(s)) for s in solution.status] == [Status.OK, Status.STEP_BEYOND_LIMIT]
-    assert solution.metrics.finite.tolist() == (np.asarray(solution.status) == Status.OK).tolist()
+    assert marked.finite.tolist() == (np.asarray(solution.status) == Status.OK).tolist()
     assert np.isnan(float(marked.peak_grip[1])) and np.isfinite(float(marked.peak_grip[0]))
 
 

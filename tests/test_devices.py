@@ -63,6 +63,7 @@ def test_wide_vectors_are_asked_for_where_the_cpu_has_them_and_a_users_width_is_
     assert devices.os.environ["XLA_FLAGS"] == "--xla_cpu_prefer_vector_width=256"
 
 
+@pytest.mark.slow  # two fresh processes compiling the step (17 s); the flag's handling is checked above
 def test_wide_vectors_give_the_same_answers(tmp_path):
     """The sliding-mode step's metrics and final states in float64, with XLA's defaults and with
     512-bit vectors, each in a fresh process: the vector width changes the code, not the arithmetic

@@ -234,7 +234,7 @@ def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_di
     assert tune_cli.make_tuner(args) == BestStart(pick=1)
 
 
-def test_a_new_tuner_runs_through_a_session_and_the_race(registered):
+def test_a_new_tuner_runs_through_a_session(registered):
     problem = pb.Problem(
         names=pb.GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False
     )
@@ -243,9 +243,18 @@ def test_a_new_tuner_runs_through_a_session_and_the_race(registered):
     tuned = session.run(prepared)
     assert set(tuned.params) == set(pb.GAINS) and tuned.result.evaluations == 1
     assert tuned.params in [pb.from_log(s, pb.GAINS) for s in prepared.starts()]  # the start it picked
+    assert tuned.verdict.requirements and tuned.selection["candidates"] == 1
+
+
+@pytest.mark.slow  # the race runs the same sessions (tests/test_session.py races in CI)
+def test_a_new_tuner_runs_through_the_race(registered):
+    problem = pb.Problem(
+        names=pb.GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False
+    )
+    options = session.Options(starts=2, held_out=2, judge_dt=2e-3)
     # A value-only reference keeps the race to value compiles.
     sessions = {"random search": session.prepare(problem, RandomSearch(block=2, generations=1), options)}
-    sessions["best start"] = prepared
+    sessions["best start"] = session.prepare(problem, BestStart(pick=1), options)
     result = race.run(sessions, "random search", seeds=[0], log=lambda s: None)
     row = result["per_seed"][0]
     assert row["evaluations"]["best start"] == 2 and row["chosen"]["best start"] is not None
