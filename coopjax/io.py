@@ -245,26 +245,26 @@ def one_run(path: str, what: str):
 
     lock = os.path.join(os.path.dirname(os.path.abspath(path)), f".{os.path.basename(path)}.lock")
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = os.read(fd, 32).decode(errors="replace").strip() or "another process"
+        with LOCK:  # an interrupt's exit (which takes LOCK) sees the lock file registered, or not ours
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.read(fd, 32).decode(errors="replace").strip() or "another process"
+                os.close(fd)
+                raise InputError(
+                    f"{what} {path}: another coopjax run (pid {holder}) is writing it; wait for it to end, or "
+                    "choose another output",
+                    "out",
+                ) from None
+            try:  # the file locked must still be the one at its name (a run that ended may have removed it)
+                same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                IN_FLIGHT.add(lock)  # an interrupt's exit removes it with the temporary files
+                break
             os.close(fd)
-            raise InputError(
-                f"{what} {path}: another coopjax run (pid {holder}) is writing it; wait for it to end, or choose "
-                "another output",
-                "out",
-            ) from None
-        try:  # the file locked must still be the one at its name (a run that ended may have removed it)
-            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        os.close(fd)
-    with LOCK:
-        IN_FLIGHT.add(lock)  # an interrupt's exit removes it with the temporary files
     try:
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
