@@ -5,6 +5,8 @@ import shutil
 import subprocess
 import sys
 
+import pytest
+
 import coopjax as cj
 from coopjax import cli
 from coopjax import cache
@@ -117,6 +119,7 @@ def test_a_cache_that_cannot_be_used_is_one_note_at_the_end_and_never_before_an_
     assert err.count("\n") == 1 and err.startswith("coopjax: note: no compile cache"), err
 
 
+@pytest.mark.slow  # CI's time (13 s): the command line's cache is checked in real processes above
 def test_a_python_program_keeps_its_jitted_gradient_with_use_cache(tmp_path):
     """`coopjax.use_cache(folder)` in a script: the first run compiles its `jit(grad(...))` of a run
     (with the traced stability mark, the default under a trace) into the folder; a second run of the

@@ -187,6 +187,7 @@ def test_processes_with_different_options_are_refused_by_every_one_before_any_wo
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.slow  # CI's time (13 s, mostly waiting): two processes give the single-process table above
 def test_a_partner_that_never_joins_is_one_line_within_the_timeout(tmp_path):
     start = time.perf_counter()
     proc = _distributed(0, "--n", "24", "--chunk", "8", "--timeout", "1", port=_free_port(), cwd=tmp_path)
