@@ -168,6 +168,15 @@ def _stat(path: str) -> list:
     return [st.st_size, st.st_mtime_ns, st.st_ino]
 
 
+def _drop(path: str) -> None:
+    """Remove an entry and its access time."""
+    for doomed in (path, path[: -len(SUFFIX)] + ATIME):
+        try:
+            os.unlink(doomed)
+        except FileNotFoundError:
+            pass
+
+
 def verify(folder: str) -> list[str]:
     """Delete every entry whose content is not the one recorded for its name (or that nothing
     recorded); returns their names. An entry whose size, time and inode are as recorded is not read
@@ -186,11 +195,7 @@ def verify(folder: str) -> list[str]:
                     continue
         except OSError:
             pass  # unreadable: removed below
-        for doomed in (path, path[: -len(SUFFIX)] + ATIME):
-            try:
-                os.unlink(doomed)
-            except FileNotFoundError:
-                pass
+        _drop(path)
         sums.pop(name, None)
         removed.append(name)
     for name in [n for n in sums if not os.path.exists(os.path.join(folder, n))]:  # evicted by JAX
@@ -209,11 +214,7 @@ def record(folder: str, trust_new: bool = True) -> None:
             if trust_new:
                 sums[name] = _stat(path) + [_sha(path)]
                 continue
-            for doomed in (path, path[: -len(SUFFIX)] + ATIME):
-                try:
-                    os.unlink(doomed)
-                except FileNotFoundError:
-                    pass
+            _drop(path)
             sums.pop(name, None)
     _write_sums(folder, sums)
 
