@@ -112,38 +112,38 @@ def verdict_text(r: dict) -> str:
 
 def print_table(before, after, start, tuned, problem: Problem) -> None:
     print()
-    print(f"{'':<34} {'start (Table 1)':>16} {'tuned':>12}")
+    print(f"{'':<34} {'start (Table 1)':>22} {'tuned':>22}")
     for n in problem.names:
-        print(f"{n:<34} {start[n]:>16.5g} {tuned[n]:>12.5g}")
+        print(f"{n:<34} {start[n]:>22.5g} {tuned[n]:>22.5g}")
     print("requirements, worst over the held-out draws:")
     for rb, ra in zip(before.requirements, after.requirements):
         wb, unit = shown(rb["worst"], rb["unit"])
         wa, _ = shown(ra["worst"], ra["unit"])
         bound = shown(ra["bound_value"], ra["unit"])[0]
-        print(f"  {ra['metric'] + f' [{unit}]':<32} {wb:>16.4g} {wa:>12.4g}")
+        print(f"  {ra['metric'] + f' [{unit}]':<32} {wb:>22.4g} {wa:>22.4g}")
         tolerance = shown(ra["tolerance"], ra["unit"])[0]
         within = f", tolerance {tolerance:g}" if tolerance else ""
         label = f"  {'>=' if ra['kind'] == 'at_least' else '<='} {bound:.4g}{within}: margin"
-        print(f"  {label:<32} {verdict_text(rb):>16} {verdict_text(ra):>12}")
+        print(f"  {label:<32} {verdict_text(rb):>22} {verdict_text(ra):>22}")
     print("objective:")
     for tb, ta in zip(before.terms, after.terms):
         unit = METRICS[ta["metric"]].unit
         vb, label = shown(tb["value"], unit)
         va, _ = shown(ta["value"], unit)
-        print(f"  {ta['over'] + ' ' + ta['metric'] + f' [{label}]':<32} {vb:>16.4g} {va:>12.4g}")
-    print(f"  {'sum of weight x term [N]':<32} {before.objective:>16.4g} {after.objective:>12.4g}")
+        print(f"  {ta['over'] + ' ' + ta['metric'] + f' [{label}]':<32} {vb:>22.4g} {va:>22.4g}")
+    print(f"  {'sum of weight x term [N]':<32} {before.objective:>22.4g} {after.objective:>22.4g}")
     for key, label in (("peak_grip", "worst peak grip [N]"), ("rms_lag", "worst RMS lag [mm]")):
         if key in after.worst and not any(t["metric"] == key for t in after.terms):
             factor = 1e3 if key == "rms_lag" else 1.0
-            print(f"  {label:<32} {before.worst[key] * factor:>16.4g} {after.worst[key] * factor:>12.4g}")
+            print(f"  {label:<32} {before.worst[key] * factor:>22.4g} {after.worst[key] * factor:>22.4g}")
     verdict = lambda v: "yes" if v.holds else "NO"
-    print(f"{'every requirement holds':<34} {verdict(before):>16} {verdict(after):>12}")
+    print(f"{'every requirement holds':<34} {verdict(before):>22} {verdict(after):>22}")
     check = lambda v: (
         "not run"
         if not np.isfinite(v.step_error)
         else f"{'ok' if v.step_error <= 1 else 'ARTEFACT' if v.step_artefact else 'over'} ({v.step_error:.2f})"
     )
-    print(f"{'dt/2 check (1 = tolerance)':<34} {check(before):>16} {check(after):>12}")
+    print(f"{'dt/2 check (1 = tolerance)':<34} {check(before):>22} {check(after):>22}")
     print()
 
 
