@@ -155,3 +155,13 @@ def test_no_module_of_tuning_but_the_command_may_import_argparse():
     contract = next(c for c in contracts if "argparse" in c.get("forbidden_modules", []))
     modules = {f"tuning.{m.name}" for m in pkgutil.iter_modules(tuning.__path__)}
     assert set(contract["source_modules"]) == modules - {"tuning.cli"}
+
+
+@pytest.mark.slow  # a second entrant's runs: the plain study's path is the same-answer test's
+def test_the_pareto_study_gives_a_tuner_that_ends_only_by_a_budget_the_plans_time():
+    prepared = session.prepare(PROBLEM, TUNERS["random search"](**SETTINGS), OPTIONS)
+    others = session.prepare(PROBLEM, TUNERS["CMA-ES"](), OPTIONS, None, tuning.Budget(1))
+    weights = [PROBLEM.minimise[-1].weight / 2, PROBLEM.minimise[-1].weight]
+    result = pareto.run({"random search": prepared, "CMA-ES": others}, "random search", weights, log=lambda s: None)
+    front = [(r["tuner"], r["weight"]) for r in result["pareto"] if r["kind"] == "front"]
+    assert front == [(t, w) for w in weights for t in ("random search", "CMA-ES")]

@@ -48,7 +48,10 @@ def run(sessions: dict, reference: str, weights, log=print) -> dict:
         log(f"-- weight of {last.over} {last.metric}: {weight:g}")
         budget = driver.Budget()
         for name in order:
-            prepared = session.prepare(problem, sessions[name].tuner, sessions[name].options, first_session.base)
+            # The plan's tuner ends on its own; the others (CMA-ES ends only by a budget) get its time.
+            prepared = session.prepare(
+                problem, sessions[name].tuner, sessions[name].options, first_session.base, budget
+            )
             tuned = session.run(prepared, budget=budget, progress=True)
             if name == reference:  # the others get its time
                 budget = driver.Budget(seconds=tuned.result.elapsed)
