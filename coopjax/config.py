@@ -59,13 +59,18 @@ def choices_of(field: dataclasses.Field) -> tuple | None:
     return tuple(choices()) if callable(choices) else choices
 
 
+def is_number(x) -> bool:
+    """A Python or NumPy real number, booleans excluded (they are not numbers to a setting)."""
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+
+
 def check_setting(field: dataclasses.Field, value) -> None:
     """A declared scalar setting's value: its kind, its choices and its check, or one `InputError`
     naming it. Booleans are not numbers here, and whole numbers are numbers of a float setting."""
     kind, name = field.metadata["kind"], field.name
     if value is None and field.default is None:
         return
-    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    real = is_number(value)
     ok = {
         bool: isinstance(value, (bool, np.bool_)),
         int: real and float(value).is_integer() and not isinstance(value, (float, np.floating)),

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import qmc
 
+from coopjax.config import is_number
 from coopjax.errors import InputError
 from coopjax.params import PARAMETERS, split_name
 from coopjax.sweeps.draws import parse_distribution
@@ -99,8 +100,11 @@ def check(items: tuple[Uncertain, ...]) -> None:
             "uncertain",
         )
     for u in items:
-        real = lambda x: isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
-        if u.kind not in KINDS or not (real(u.low) and real(u.high)) or not (np.isfinite([u.low, u.high]).all()):
+        if (
+            u.kind not in KINDS
+            or not (is_number(u.low) and is_number(u.high))
+            or not (np.isfinite([u.low, u.high]).all())
+        ):
             raise InputError(
                 f"uncertain: {u.name}: {u.kind!r} from {u.low!r} to {u.high!r}: a box is uniform:LOW:HIGH or "
                 "loguniform:LOW:HIGH with finite numbers",

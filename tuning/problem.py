@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from coopjax import scenarios
-from coopjax.config import Config, check_setting, setting
+from coopjax.config import Config, check_setting, is_number, setting
 from coopjax.errors import InputError
 from coopjax.integration import INTEGRATORS
 from coopjax.objectives import METRICS
@@ -544,8 +544,7 @@ def _requirement(r) -> Requirement:
 
 def _number(x):
     """A float where `x` is a number; anything else kept as given, for `validate` to name."""
-    real = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
-    return float(x) if real else x
+    return float(x) if is_number(x) else x
 
 
 def to_log(values: dict[str, float], names) -> np.ndarray:
