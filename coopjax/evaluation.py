@@ -8,6 +8,7 @@ says which of those failed, most basic cause first. Columns are float64 numpy ar
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -29,12 +30,18 @@ BOOKKEEPING = {
 STEP_ERROR = {
     "step_error": "tolerances: the two-step check's largest disagreement between dt and dt/2 (above 1: step_artefact)"
 }
+REFINED = {"dt": "s, the step the sample ran at (below the configured one where its loop needed it: refine)"}
 
 
-def columns(config: Config, check_step: bool = False) -> tuple[str, ...]:
+def columns(config: Config, check_step: bool = False, refine: int = 0) -> tuple[str, ...]:
     """What `evaluate` returns, in order: the configured metrics, then the bookkeeping (and the
-    two-step check's column if asked for)."""
-    return tuple(config.metrics) + tuple(BOOKKEEPING) + (tuple(STEP_ERROR) if check_step else ())
+    two-step check's column, and the step each sample ran at, if asked for)."""
+    return (
+        tuple(config.metrics)
+        + tuple(BOOKKEEPING)
+        + (tuple(STEP_ERROR) if check_step else ())
+        + (tuple(REFINED) if refine else ())
+    )
 
 
 def block_size(n: int) -> int:
@@ -52,9 +59,11 @@ def significant(x: np.ndarray, digits: int) -> np.ndarray:
         return np.where(np.isfinite(x) & (x != 0), np.round(x / scale) * scale, x)
 
 
-def evaluate(params: Params, config: Config, *, check_step: bool = False, block: int | None = None) -> dict:
+def evaluate(
+    params: Params, config: Config, *, check_step: bool = False, block: int | None = None, refine: int = 0
+) -> dict:
     """Per sample of the batch `params` (leaves with a trailing batch axis), the columns
-    `columns(config, check_step)` as float64 arrays; `status` holds `Status` codes.
+    `columns(config, check_step, refine)` as float64 arrays; `status` holds `Status` codes.
 
     Args:
       params: a batch of parameter sets (`make_params` with 1-D values); cast to the config's dtype.
@@ -62,29 +71,56 @@ def evaluate(params: Params, config: Config, *, check_step: bool = False, block:
       check_step: run every sample again at dt / 2: a `step_error` column, and status
         `step_artefact` where the answers move by more than a tolerance. It triples the cost.
       block: samples per device per call (None: `block_size` of the batch).
+      refine: a sample whose step is beyond its loop's stability limit runs again at dt / 2^k, the
+        longest such step within the limit, for k up to `refine` (and is checked at half that step):
+        its values then stand for the model, not for a step it cannot take. The `dt` column says the
+        step each sample ran at. 0: such a sample keeps status `step_beyond_limit`.
     """
     params = config.cast(params)
     block = block or block_size(params.batch_shape[0])
     limit, growth = stability.stable_dt(params, config)
     limit = significant(limit, 6)
-    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block)
-    out = {n: np.asarray(v, np.float64) for n, v in zip(metrics._fields, jax.device_get(list(metrics)))}
-    diverged = out["finite"] < 0.5
+    out = _runs(params, config, check_step, block)
     # The cause first: an unstable loop, then a step beyond the limit, then a blow-up of unknown
     # cause (`t_diverged` says when any of them blew up).
-    status = np.select(
-        [growth > 0, config.dt > limit, diverged],
-        [Status.UNSTABLE_LOOP, Status.STEP_BEYOND_LIMIT, Status.DIVERGED],
-        Status.OK,
-    )
+    status = _status(out, growth, config.dt > limit, check_step)
+    out["dt"] = np.full(len(status), config.dt)
+    for k in range(1, refine + 1):
+        # The longest halving within the limit: each sample refined once, at its own step.
+        rows = np.flatnonzero((status == Status.STEP_BEYOND_LIMIT) & (config.dt / 2**k <= limit))
+        if not len(rows):
+            continue
+        finer = dataclasses.replace(config, dt=config.dt / 2**k)
+        part = jax.tree_util.tree_map(lambda x: x[..., rows], params)
+        again = _runs(part, finer, check_step, block)
+        for name, value in again.items():
+            out[name][rows] = value
+        out["dt"][rows] = finer.dt
+        status[rows] = _status(again, growth[rows], np.zeros(len(rows), bool), check_step)
     out["dt_limit"] = limit
+    out["status"] = status.astype(np.float64)
+    return {name: out[name] for name in columns(config, check_step, refine)}
+
+
+def _runs(params: Params, config: Config, check_step: bool, block: int) -> dict:
+    """The metrics (and with `check_step` the two-step check's error) of every sample at config.dt."""
+    metrics = devices.run(metrics_of(config), params, fixed_block=True, block=block)
+    out = {n: np.array(v, np.float64) for n, v in zip(metrics._fields, jax.device_get(list(metrics)))}
     if check_step:
         fine = devices.run(metrics_of(step_check.halved(config)), params, fixed_block=True, block=block)
         names = step_check.checked(config)
-        error = step_check.step_error(
+        out["step_error"] = step_check.step_error(
             {n: out[n] for n in names}, {n: np.asarray(getattr(fine, n), np.float64) for n in names}
         )
-        status = np.where((status == Status.OK) & step_check.artefacts(error), Status.STEP_ARTEFACT, status)
-        out["step_error"] = error
-    out["status"] = status.astype(np.float64)
-    return {name: out[name] for name in columns(config, check_step)}
+    return out
+
+
+def _status(out: dict, growth, beyond, check_step: bool) -> np.ndarray:
+    status = np.select(
+        [growth > 0, beyond, out["finite"] < 0.5],
+        [Status.UNSTABLE_LOOP, Status.STEP_BEYOND_LIMIT, Status.DIVERGED],
+        Status.OK,
+    )
+    if check_step:
+        status = np.where((status == Status.OK) & step_check.artefacts(out["step_error"]), Status.STEP_ARTEFACT, status)
+    return status

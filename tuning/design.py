@@ -35,7 +35,8 @@ from coopjax.sweeps.draws import parse_distribution
 KINDS = ("uniform", "loguniform")
 MAX_UNCERTAIN = 6  # 2^6 = 64 corners per design
 VALIDATION_COUNT = 48  # selection draws
-TRAIN_SOBOL_SEED, VALIDATION_SEED, HELD_OUT_SEED = 101, 202, 303
+TRAIN_SOBOL_SEED, VALIDATION_SEED, HELD_OUT_SEED, DENSE_SEED = 101, 202, 303, 404
+DENSE_COUNT = 64  # draws of a dense design (besides the corners with several uncertain parameters)
 
 
 def shortest(x) -> str:
@@ -173,6 +174,17 @@ def held_out(items, count: int) -> np.ndarray:
     if p == 1:
         return _map(items, np.linspace(0.0, 1.0, count)[:, None])
     return _map(items, np.concatenate([_corners(p), _sobol(p, count, HELD_OUT_SEED)]))
+
+
+def dense(items, count: int = DENSE_COUNT, seed: int = DENSE_SEED) -> np.ndarray:
+    """(M, p) a dense design over the box itself, for judging a result beyond its held-out draws: a
+    grid of `count` points with its ends (one parameter; with an odd count it shares only the ends
+    and the middle with a 12-point held-out grid), or the corners and `count` Sobol points of its own
+    seed (several)."""
+    p = len(items)
+    if p == 1:
+        return _map(items, np.linspace(0.0, 1.0, count)[:, None])
+    return _map(items, np.concatenate([_corners(p), _sobol(p, count, seed)]))
 
 
 def describe(items, draws: np.ndarray) -> str:

@@ -29,6 +29,7 @@ import numpy as np
 from coopjax import devices
 from coopjax.config import Config
 from coopjax.params import ROBOTS, split_name
+from coopjax.stability import stable_dt
 from tuning.problem import Problem
 from tuning.training import bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
@@ -239,9 +240,11 @@ class Evaluator:
         self.trajectories += K * M * len(self.problem.scenarios)
         real, rest, value, gradient, jac = jax.device_get((real, rest, value, gradient, jac))
         f, c, parts = np.asarray(real["f"]), np.asarray(real["c"]), np.asarray(real["parts"])
-        # Every run of the candidate did not diverge, and its objective and constraints are finite.
+        # Every run of the candidate is measured (it did not diverge, its step is within its loop's
+        # limit), and its objective and constraints are finite.
         finite = np.nan_to_num(np.asarray(rest["finite"], float), nan=0.0) > 0.5
-        valid = finite.all(1) & np.isfinite(f) & np.isfinite(c).all(1) & np.isfinite(parts).all(1)
+        unmeasured = (~finite).mean(1) + self._beyond(params, K, M)
+        valid = (unmeasured == 0) & np.isfinite(f) & np.isfinite(c).all(1) & np.isfinite(parts).all(1)
         return Evaluation(
             f=f,
             c=c,
@@ -252,4 +255,17 @@ class Evaluator:
             value=None if value is None else np.asarray(value),
             gradient=None if gradient is None else np.asarray(gradient),
             jacobian=None if jac is None else {k: np.asarray(v) for k, v in jac.items()},
+            unmeasured=np.where(valid, 0.0, np.maximum(unmeasured, 1.0 / (M * len(self.problem.configs)))),
         )
+
+    def _beyond(self, params, K: int, M: int) -> np.ndarray:
+        """(K,) per candidate, the mean over its runs of how far each run's training step is beyond
+        its linearised loop's stability limit: 0 within it, 1 + log2(dt / limit) beyond, 4 with a
+        growing mode. A value the training step cannot measure is not a value to train on."""
+        out = np.zeros(K)
+        for config in self.problem.configs:
+            limit, growth = stable_dt(params, config)
+            with np.errstate(divide="ignore"):
+                over = np.where(config.dt > limit, 1.0 + np.log2(config.dt / np.maximum(limit, 1e-300)), 0.0)
+            out += np.where(growth > 0, 4.0, np.minimum(over, 1e3)).reshape(K, M).mean(1)
+        return out / len(self.problem.configs)

@@ -27,6 +27,9 @@ from tuning.training import aggregate
 # s: a factor 2 inside the stability limit of Table 1's gains (about 4e-3 s), which shrinks as K_GP
 # grows; the sliding-mode step met the accuracy tolerances there on every sample (docs/model.md).
 JUDGE_DT = 1e-3
+# A run whose loop needs a finer step than the judge's runs at dt / 2^k (k up to this; dt / 16 =
+# 6.25e-5 s): its values are then the model's, where a run beyond its limit would say nothing.
+REFINE = 4
 # Runs per device per call of every judging: one block for all sizes, so that the selection, the
 # verdict and the race share one compiled program per step (docs/tuning.md, where the time goes).
 JUDGE_BLOCK = 128
@@ -49,6 +52,10 @@ class Verdict(NamedTuple):
     # above stand for the runs (NaN otherwise).
     measured: bool
     holds: bool  # measured, no step artefact, and every requirement met at every case
+    # How far from measured: 0 when every case is; else the mean over cases of a badness that is 0
+    # for a measured case and at least 1 for one that is not, growing with how early it diverged,
+    # how far its step is beyond the loop's limit, or how fast its loop grows (`unmeasured`).
+    unmeasured: float
     step_error: float  # the two-step check's worst disagreement, in tolerances (NaN: not checked)
     step_artefact: bool  # some case's answer moved by more than a tolerance between dt and dt/2
     per_case: dict  # name -> list over cases; also `status` (labels), `scenario` and each uncertain parameter
@@ -66,10 +73,22 @@ class Verdict(NamedTuple):
 
     @property
     def violation(self) -> float:
-        """How far the worst requirement misses, relative to its bound's scale (0: all met)."""
-        misses = [max(0.0, -r["margin"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements]
-        misses = [m if np.isfinite(m) else math.inf for m in misses]
-        return max(misses, default=0.0)
+        """How far the worst requirement misses, relative to its bound's scale (0: all met), over the
+        measured cases; finite, so that it orders candidates."""
+        misses = [
+            max(0.0, -r["margin"] - r["tolerance"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements
+        ]
+        return max([m for m in misses if np.isfinite(m)], default=0.0)
+
+    @property
+    def binding(self) -> dict | None:
+        """The requirement that misses most (relative to its bound's scale), or None if all are met."""
+        misses = [
+            max(0.0, -r["margin"] - r["tolerance"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements
+        ]
+        if not self.requirements or max(misses) <= 0:
+            return None
+        return self.requirements[int(np.argmax(misses))]
 
     def row(self) -> dict:
         """As a flat dict for files and tables; the lag in mm is for display only."""
@@ -107,6 +126,7 @@ def judge(
     base: Params | None = None,
     dt: float = JUDGE_DT,
     check_step: bool = True,
+    extra=None,
 ):
     """Judge one parameter set (or a list of them) against a problem, with the hard model in float64.
 
@@ -119,6 +139,9 @@ def judge(
       dt: the judge's step, s.
       check_step: repeat every run at dt / 2 (`coopjax.step_check`): a set whose answers move by more
         than the accuracy tolerances is a step artefact, and does not hold.
+      extra: (E, p) draws judged besides `draws` (the worst cases `worst_case` found between them): they
+        count for the requirements and the `max` terms, not for a `mean` or `cvar` term, which
+        stays the aggregate over `draws`, the design.
 
     Returns:
       a `Verdict` (a list of them for a list). The runs are sharded over every local device.
@@ -130,6 +153,9 @@ def judge(
     sets = list(values) if many else [values]
     draws = problem.held_out_draws() if draws is None else np.asarray(draws, np.float64)
     draws = draws[:, None] if draws.ndim == 1 else draws
+    design_count = len(draws)
+    if extra is not None and len(extra):
+        draws = np.concatenate([draws, np.asarray(extra, np.float64).reshape(-1, draws.shape[1])])
     base = problem.base(make_params(dtype="float64") if base is None else base)
     if base.batch_shape:
         raise InputError("the base parameters of a judging must be a single set, not a batch", "base")
@@ -142,7 +168,7 @@ def judge(
     runs = []
     for s in problem.scenarios:
         config = judge_config(dt, s, judged_metrics(problem, s)).validate()
-        runs.append(evaluation.evaluate(params, config, check_step=check_step, block=JUDGE_BLOCK))
+        runs.append(evaluation.evaluate(params, config, check_step=check_step, block=JUDGE_BLOCK, refine=REFINE))
     verdicts = []
     for g in range(G):
         rows = slice(g * M, (g + 1) * M)
@@ -152,7 +178,7 @@ def judge(
             for r in problem.require
             if isinstance(r.bound, str)
         }
-        verdicts.append(_verdict(problem, per, draws, bound_values))
+        verdicts.append(_verdict(problem, per, draws, bound_values, design_count))
     return verdicts if many else verdicts[0]
 
 
@@ -176,28 +202,51 @@ def select(
 
 def preferred(verdicts: list[Verdict]) -> int:
     """`select`'s rule: the first verdict that holds with the lowest objective; if none holds, the
-    least violation of the requirements, then the lowest objective."""
+    most nearly measured (`Verdict.unmeasured`: a run that diverged or could not be run orders below
+    every measured one), then the least violation of the requirements, then the lowest objective."""
     finite = lambda x: x if np.isfinite(x) else np.inf
     key = lambda i: (
         not verdicts[i].holds,
-        0.0 if verdicts[i].holds else finite(verdicts[i].violation),
+        verdicts[i].unmeasured,
+        0.0 if verdicts[i].holds else verdicts[i].violation,
         finite(verdicts[i].objective),
     )
     return min(range(len(verdicts)), key=key)
 
 
-def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values: dict) -> Verdict:
+def _badness(status, t_diverged, T, beyond) -> np.ndarray:
+    """Per case, 0 if measured, else at least 1: a diverged run 1 + the share of its horizon it did
+    not reach, a step beyond the limit 2 + log2 of how far, an unstable loop 2 + that + 4 (all
+    finite: candidates are ordered by them, never tied as NaN)."""
+    late = np.nan_to_num(1.0 - t_diverged / T, nan=1.0)
+    over = np.log2(np.maximum(np.nan_to_num(beyond, nan=1e3, posinf=1e3), 1.0))
+    return np.select(
+        [status == Status.DIVERGED, status == Status.STEP_BEYOND_LIMIT, status == Status.UNSTABLE_LOOP],
+        [1.0 + np.clip(late, 0.0, 1.0), 2.0 + over, 6.0 + over],
+        0.0,
+    )
+
+
+def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values: dict, design: int) -> Verdict:
     M = len(draws)
-    names = list(dict.fromkeys(k for out in runs for k in out if k not in ("dt_limit", "t_diverged")))
+    names = list(dict.fromkeys(k for out in runs for k in out if k not in ("dt_limit", "t_diverged", "dt")))
     nan = np.full(M, np.nan)
     case = {k: np.concatenate([out.get(k, nan) for out in runs]) for k in names}  # scenario-major
     status = case["status"].astype(int)
     measured = bool(all(Status(s).measured for s in status))
     artefact = bool(np.any(status == Status.STEP_ARTEFACT))
+    ok = np.array([Status(s).measured for s in status])
+    badness = _badness(
+        status,
+        np.concatenate([out["t_diverged"] for out in runs]),
+        np.concatenate([np.full(M, scenarios.get(s).T) for s in problem.scenarios]),
+        np.concatenate([out["dt"] / np.maximum(out["dt_limit"], 1e-300) for out in runs]),
+    )
+    case = {k: np.where(ok, v, np.nan) if k in METRICS else v for k, v in case.items()}
 
-    def worst(name, x=None):  # a step artefact ran to the end: its values are shown, and it does not hold
+    def worst(name, x=None):  # over the measured cases (a step artefact's too: it ran to the end, flagged)
         x = case[name] if x is None else x
-        if not measured or np.all(np.isnan(x)):
+        if np.all(np.isnan(x)):
             return float("nan")
         return float(np.nanmin(x) if name in LEAST else np.nanmax(x))
 
@@ -205,7 +254,10 @@ def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values
     objective, terms = 0.0, []
     for o, cols in zip(problem.minimise, problem.objective_columns(M)):
         x = case[o.metric][cols]
-        value = float(aggregate(x, o.over)) if measured else float("nan")
+        if o.over != "max":  # a mean or cvar is over the design's draws, not the worst cases added
+            x = x[(cols % M) < design]
+        x = x[np.isfinite(x)]
+        value = float(aggregate(x, o.over)) if len(x) else float("nan")
         objective += o.weight * value
         terms.append(
             {
@@ -223,8 +275,8 @@ def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values
         bound = np.tile(bound_values[r], len(cols) // M) if isinstance(r.bound, str) else np.full(len(cols), r.bound)
         slack = r.slack(x, bound)
         tolerance = r.tolerance
-        margin = float(np.min(slack)) if measured and np.isfinite(slack).all() else float("nan")
-        at = int(np.argmin(slack)) if np.isfinite(margin) else None
+        margin = float(np.nanmin(slack)) if np.isfinite(slack).any() else float("nan")
+        at = int(np.nanargmin(slack)) if np.isfinite(margin) else None
         requirements.append(
             {
                 "requirement": r.text,
@@ -236,12 +288,13 @@ def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values
                 "worst": float(x[at]) if at is not None else float("nan"),
                 "margin": margin,
                 "tolerance": tolerance,
-                "met": bool(np.isfinite(margin) and np.all(r.met(x, bound))),  # training's rule, every case
+                "met": bool(np.isfinite(slack).all() and np.all(r.met(x, bound))),  # training's rule, every case
                 "scenarios": list(r.scenarios or problem.scenarios),
             }
         )
     per_case = {k: [float(v) for v in case[k]] for k in metrics}
     per_case["status"] = labels(status).tolist()
+    per_case["dt"] = [float(v) for v in np.concatenate([out["dt"] for out in runs])]
     per_case["scenario"] = [s for s in problem.scenarios for _ in range(M)]
     for i, u in enumerate(problem.uncertain):
         per_case[u.name] = [float(v) for v in np.tile(draws[:, i], len(problem.scenarios))]
@@ -254,9 +307,90 @@ def _verdict(problem: Problem, runs: list[dict], draws: np.ndarray, bound_values
         finite=bool(np.all(case["finite"] > 0.5)),
         measured=measured,
         holds=measured and not artefact and all(r["met"] for r in requirements),
+        unmeasured=float(badness.mean()),
         step_error=float(np.nanmax(case["step_error"]))
         if checked and np.isfinite(case["step_error"]).any()
         else float("nan"),
         step_artefact=artefact,
         per_case=per_case,
     )
+
+
+def worst_case(
+    values: dict[str, float],
+    draws,
+    problem: Problem,
+    base: Params | None = None,
+    dt: float = JUDGE_DT,
+    rounds: int = 5,
+    verdict: Verdict | None = None,
+) -> np.ndarray:
+    """Draws of the uncertain box worse than any of `draws` for one parameter set: a search between
+    the draws for the worst case of each requirement (its least slack) and of each `max` term of the
+    objective (its largest value), by the hard model at `dt`.
+
+    Each target starts at its worst draw and takes `rounds` rounds of a pattern search in the box's
+    unit coordinates (log coordinates for a loguniform parameter): the 2p points a step h away along
+    each axis, in one batch with every other target's; the worst replaces the point where it is worse,
+    else h halves. h starts at half the spacing of a grid of len(draws) points. Returns the (T, p)
+    points reached (T targets), to be judged with the draws; a point where nothing worse was found is
+    its starting draw. `verdict`: the set's verdict on `draws`, if judged already.
+    """
+    draws = np.asarray(draws, np.float64)
+    draws = draws[:, None] if draws.ndim == 1 else draws
+    items = problem.uncertain
+    p = len(items)
+    to_unit = lambda x: np.stack([_unit(u, x[:, i]) for i, u in enumerate(items)], 1)
+    from_unit = lambda z: np.stack([u.at(z[:, i]) for i, u in enumerate(items)], 1)
+    targets = _targets(problem)
+    if not targets:
+        return np.zeros((0, p))
+    v = verdict or judge(values, draws, problem, base, dt, check_step=False)
+    scores = np.stack([_score(v, t, len(draws)) for t in targets])  # (T, M): larger is worse
+    best = scores.argmax(1)
+    point, score = to_unit(draws)[best], scores[np.arange(len(targets)), best]
+    h = np.full(len(targets), 0.5 / max(1, round(len(draws) ** (1.0 / p)) - 1))
+    steps = np.concatenate([np.eye(p), -np.eye(p)])
+    for _ in range(rounds):
+        trial = np.clip(point[:, None, :] + h[:, None, None] * steps[None], 0.0, 1.0)  # (T, 2p, p)
+        flat = trial.reshape(-1, p)
+        v = judge(values, from_unit(flat), problem, base, dt, check_step=False)
+        got = np.stack([_score(v, t, len(flat)) for t in targets]).reshape(len(targets), len(targets), 2 * p)
+        T = np.arange(len(targets))
+        own = got[T, T]  # (T, 2p): each target's score at its own trials
+        j = own.argmax(1)
+        better = own[T, j] > score
+        point = np.where(better[:, None], trial[T, j], point)
+        score = np.where(better, own[T, j], score)
+        h = np.where(better, h, h / 2)
+    return from_unit(point)
+
+
+def _unit(u, x):
+    if u.kind == "loguniform":
+        return (np.log(x) - np.log(u.low)) / (np.log(u.high) - np.log(u.low))
+    return (x - u.low) / (u.high - u.low)
+
+
+def _targets(problem: Problem) -> list:
+    """What a worst case is searched for: each requirement, each `max` term."""
+    return [("require", i) for i in range(len(problem.require))] + [
+        ("minimise", i) for i, o in enumerate(problem.minimise) if o.over == "max"
+    ]
+
+
+def _score(v: Verdict, target, M: int) -> np.ndarray:
+    """Per draw (M), how bad the target is there (the largest over its scenarios): a requirement's
+    metric signed so that larger is worse, a term's value; a run that is not measured is worst of
+    all (+inf), a metric the scenario lacks never worst (-inf)."""
+    kind, i = target
+    problem_item = v.requirements[i] if kind == "require" else v.terms[i]
+    cases = {k: np.asarray(x, np.float64) for k, x in v.per_case.items() if k not in ("status", "scenario")}
+    S = len(cases["dt"]) // M
+    x = cases[problem_item["metric"]].reshape(S, M)
+    if kind == "require":
+        x = -x if problem_item["kind"] == "at_least" else x  # larger is worse; the bound shifts all alike
+    unmeasured = ~np.isin(np.asarray(v.per_case["status"]), ("ok", "step_artefact")).reshape(S, M)
+    x = np.where(unmeasured, np.inf, np.nan_to_num(x, nan=-np.inf))
+    on = [s for s in range(S) if v.per_case["scenario"][s * M] in problem_item["scenarios"]]
+    return x[on].max(axis=0)

@@ -75,11 +75,12 @@ def closing(session: Session, tuned: Tuned, files: dict, nulls: list, seconds: f
         f"{seconds:.0f} s in all"
     )
     print(f"wrote {files['out']}, {files['history']} and {files['traces']}")
-    return exit_code(tuned.verdict)
+    return exit_code(tuned.verdict, tuned.selection.get("trade_off"))
 
 
-def exit_code(verdict) -> int:
-    """0 when every requirement holds on the held-out draws; else `EXIT_MISSED`, naming what misses."""
+def exit_code(verdict, trade_off: str | None = None) -> int:
+    """0 when every requirement holds on the held-out draws; else `EXIT_MISSED`, naming what misses,
+    the requirement that binds with its least violation, and the trade-off the candidates showed."""
     if verdict.holds:
         return 0
     missed = [r for r in verdict.requirements if not r["met"]]
@@ -92,6 +93,15 @@ def exit_code(verdict) -> int:
     elif verdict.step_artefact:
         reasons.append("a held-out answer moves by more than a tolerance between dt and dt/2 (a step artefact)")
     print(f"the answer written misses: {'; '.join(reasons)} (exit code {EXIT_MISSED})")
+    if verdict.binding is not None:
+        r = verdict.binding
+        worst, unit = shown(r["worst"], r["unit"])
+        print(
+            f"binding: {r['requirement']}, worst {worst:.4g} {unit} against {shown(r['bound_value'], r['unit'])[0]:.4g}"
+            f" (least violation found {verdict.violation:.3g} of the bound)"
+        )
+    if trade_off:
+        print(f"trade-off: {trade_off}")
     return EXIT_MISSED
 
 

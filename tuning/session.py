@@ -27,7 +27,7 @@ from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
-from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, select
+from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, select, worst_case
 from tuning.problem import Problem, from_log, to_log
 from tuning.training import starting_points
 from tuning.tuners import Tuner
@@ -335,6 +335,45 @@ def run(
         f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "
         f"{describe_draws(problem.uncertain, session.held_out)}, held out, x {len(problem.scenarios)} scenario(s) ..."
     )
+    selection["trade_off"] = trade_off(verdicts)
     start, start_trace = background.result() if background else (None, None)
     verdict = judge(options[chosen], session.held_out, problem, session.base, o.judge_dt)
+    # The worst case between the held-out draws, for each requirement and `max` term: the verdict is
+    # on the worst found, not on the worst of a fixed grid.
+    found = worst_case(options[chosen], session.held_out, problem, session.base, o.judge_dt, verdict=verdict)
+    new = [x for x in found if not np.isclose(session.held_out, x).all(1).any()]
+    if new:
+        log(f"searching between the held-out draws: {len(new)} worse draw(s) found, judged with them ...")
+        verdict = judge(options[chosen], session.held_out, problem, session.base, o.judge_dt, extra=np.array(new))
     return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
+
+
+def trade_off(verdicts: list[Verdict]) -> str | None:
+    """Where no candidate meets every requirement: the requirement that binds (the chosen one's
+    worst miss) and the best value of it among the candidates that meet every other one on the
+    validation draws ("with min_grip >= F_lim held at every draw, the smallest peak_grip found is
+    43.1 N"); None when some candidate holds."""
+    from tuning.judging import preferred
+
+    if any(v.holds for v in verdicts):
+        return None
+    chosen = verdicts[preferred(verdicts)]
+    if chosen.binding is None:
+        return None
+    i = [r["requirement"] for r in chosen.requirements].index(chosen.binding["requirement"])
+    others = [r["requirement"] for j, r in enumerate(chosen.requirements) if j != i]
+    fine = [v for v in verdicts if v.measured and all(r["met"] for j, r in enumerate(v.requirements) if j != i)]
+    r = chosen.requirements[i]
+    scale, unit = (1e3, "mm") if r["unit"] == "m" else (1.0, r["unit"])
+    if not fine:
+        return (
+            f"no candidate met every requirement but {r['requirement']}; the least miss of it found is "
+            f"{-r['margin'] * scale:.4g} {unit}"
+        )
+    best = min(fine, key=lambda v: -v.requirements[i]["margin"]).requirements[i]
+    word = "smallest" if r["kind"] == "at_most" else "largest"
+    held = f"with {' and '.join(others)} held at every validation draw, " if others else ""
+    return (
+        f"{held}the {word} {r['metric']} found is {best['worst'] * scale:.4g} {unit} "
+        f"(bound {best['bound_value'] * scale:.4g} {unit})"
+    )

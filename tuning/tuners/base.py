@@ -31,12 +31,22 @@ class Evaluation(NamedTuple):
     f: np.ndarray  # (C,) the problem's objective (N): its terms' training aggregates, summed
     c: np.ndarray  # (C, Q) the requirements' constraints, per requirement and draw: met where <= 0
     parts: np.ndarray  # (C, P) the objective terms' weighted values per case (N), term after term
-    valid: np.ndarray  # (C,) no run diverged, and f and c are finite
+    valid: np.ndarray  # (C,) every run measured (none diverged, every step within its loop's limit), f and c finite
     holds: np.ndarray  # (C,) valid, and every requirement is met at every draw (the judge's rule)
     min_swi: np.ndarray  # (C, G) the grip margin (least Filippov weight) at the grip requirement's cases
     value: np.ndarray | None = None  # (C,) the tuner's scalar, with "gradient"
     gradient: np.ndarray | None = None  # (C, n), with "gradient"
     jacobian: dict | None = None  # {"f": (C, n), "c", "parts", "min_swi": (C, columns, n)}, with "jacobian"
+    # (C,) how far from measured, finite: 0 when valid; else the mean over the candidate's runs of
+    # 1 for a run that diverged plus, for a step beyond its loop's limit, 1 + log2 of how far. A
+    # tuner orders invalid candidates by it (never a NaN that ties them).
+    unmeasured: np.ndarray | None = None
+
+    def bad(self, scale: float) -> np.ndarray:
+        """(C,) a finite value for each invalid candidate that orders it above every valid one:
+        scale x (1 + unmeasured)."""
+        u = np.zeros(len(self.f)) if self.unmeasured is None else self.unmeasured
+        return scale * (1.0 + u)
 
 
 class Best(NamedTuple):

@@ -22,7 +22,7 @@ import numpy as np
 from coopjax.errors import InputError
 from tuning.tuners.base import Best, Query, Tuner, register
 
-BAD = 1e6  # the objective given to CMA-ES for a candidate whose run diverged
+BAD = 1e6  # the objective given to CMA-ES for a candidate whose runs are not measured (x (1 + unmeasured))
 
 
 @contextlib.contextmanager
@@ -153,8 +153,8 @@ class CMAES(Tuner):
     def tell(self, state, query, ev):
         X = query.thetas
         fun = copy.deepcopy(state.fun)
-        for x, fi, ci, ok in zip(X, ev.f, ev.c, ev.valid):
-            fun.lookup.values[tuple(x)] = (float(fi) if ok else BAD, list(np.where(np.isfinite(ci), ci, BAD)))
+        for x, fi, ci, ok, bad in zip(X, ev.f, ev.c, ev.valid, ev.bad(BAD)):
+            fun.lookup.values[tuple(x)] = (float(fi) if ok else bad, list(np.where(np.isfinite(ci), ci, bad)))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # its AL warns about every interquartile range it adapts
             es = told(state.es, X, [fun(x) for x in X])

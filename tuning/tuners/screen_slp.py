@@ -66,7 +66,7 @@ from tuning.tuners.base import (
 from tuning.tuners.cmaes import sample, strategy, told
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
-BAD = 1e6  # the merit CMA-ES is told for a point whose run diverged
+BAD = 1e6  # the merit CMA-ES is told for a point whose runs are not measured (x (1 + unmeasured))
 
 
 @dataclasses.dataclass
@@ -91,6 +91,9 @@ class State:
     seed: int = 0
     problem: object = None
     es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
+    polish_es: object = None  # the polish's evolution strategy
+    polished: Best = Best()  # the polish's best point, by the problem's own merit (`true_merit`)
+    generation: int = 0  # polish generations told
 
 
 def segments(problem, M: int) -> list[tuple[slice, str]]:
@@ -107,6 +110,16 @@ def merit(out: dict, problem, M: int, penalty, swi_penalty, swi_margin):
     phi = sum(np.asarray(aggregate(out["parts"][:, seg], over)) for seg, over in segments(problem, M))
     gap = np.maximum(0.0, swi_margin - out["swi"])
     return phi + penalty * np.maximum(out["c"], 0.0).sum(1) + swi_penalty * gap.sum(1)
+
+
+def true_merit(ev, problem, M: int, penalty) -> np.ndarray:
+    """The problem's own merit per candidate, for the polish: its objective with hard aggregates plus
+    `penalty` per unit of constraint violation (the grip's RMS shortfall in N, lengths in mm); no
+    margin asked beyond the requirements. A candidate whose runs are not measured gets a finite value
+    above every measured one (`Evaluation.bad`)."""
+    phi = sum(np.asarray(aggregate(ev.parts[:, seg], over)) for seg, over in segments(problem, M))
+    phi = phi + penalty * np.maximum(ev.c, 0.0).sum(1)
+    return np.where(ev.valid & np.isfinite(phi), phi, ev.bad(BAD))
 
 
 def program(theta, out: dict, radius, lo, hi, problem, M, penalty, swi_penalty, swi_margin):
@@ -284,6 +297,13 @@ class ScreenSLP(Tuner):
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
     diverse: float = 0.5  # least distance between two local starts, log units (max norm)
     steps: int = setting(12, "Jacobian steps of the local solves", "--steps")
+    polish: int = setting(
+        16,
+        "CMA-ES generations that polish the best local solve on the problem's own merit (no margin), "
+        "in batches of the screen's shape",
+        "--polish",
+    )
+    polish_sigma: float = 0.3  # the polish's initial step, log units
     radius: float = 0.25  # initial trust region, log units
     radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
     max_radius: float = 1.0
@@ -314,7 +334,7 @@ class ScreenSLP(Tuner):
             raise InputError(f"jacobian is {self.jacobian!r}: exact or fd", "jacobian")
         if self.search not in SEARCHES:
             raise InputError(f"search is {self.search!r}: {' or '.join(SEARCHES)}", "search")
-        for field, least in (("screen", 0), ("steps", 1), ("local", 1)):
+        for field, least in (("screen", 0), ("steps", 1), ("local", 1), ("polish", 0)):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(f"{field} is {value!r}: a whole number, at least {least}", field)
@@ -350,8 +370,8 @@ class ScreenSLP(Tuner):
     def _generation(self, state) -> np.ndarray:
         return sample(state.es)
 
-    def _tell_strategy(self, state, thetas, phi):
-        state.es = told(state.es, thetas, [float(x) if np.isfinite(x) else BAD for x in phi])
+    def _tell_strategy(self, state, thetas, phi, ev):
+        state.es = told(state.es, thetas, np.where(np.isfinite(phi), phi, ev.bad(BAD)).tolist())
 
     def _sobol_count(self, starts: int) -> int:
         """Sobol points in the screen: at least `screen`, as many as fill the last batch."""
@@ -390,6 +410,8 @@ class ScreenSLP(Tuner):
             return Query(state.theta.copy(), state.draws, "jacobian")
         if state.phase == "trials":
             return Query(state.trials.reshape(-1, state.trials.shape[-1]).copy(), state.draws)
+        if state.phase == "polish":
+            return Query(sample(state.polish_es), state.draws)
         return None
 
     def _more_points(self, state):
@@ -405,7 +427,7 @@ class ScreenSLP(Tuner):
     def _tell_more(self, state, query, ev):
         _, ok, phi = self._ok_phi(state, ev)
         if self.search == "cma":
-            self._tell_strategy(state, query.thetas, phi)
+            self._tell_strategy(state, query.thetas, phi, ev)
         for i in range(len(phi)):
             self._keep_best(state, 0, ev.holds[i], phi[i], query.thetas[i])
         state.step += 1
@@ -416,9 +438,11 @@ class ScreenSLP(Tuner):
         state = copy.deepcopy(state, {id(state.problem): state.problem})
         if state.phase == "screen only":
             return self._tell_more(state, query, ev)
-        return {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}[state.phase](
-            state, query, ev
-        )
+        tell = {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}
+        state = (tell | {"polish": self._tell_polish})[state.phase](state, query, ev)
+        if state.phase == "jacobian" and state.step >= self.steps:  # the local solves' steps are spent
+            self._start_polish(state)
+        return state
 
     def _ok_phi(self, state, ev):
         out = _outputs(ev)
@@ -427,7 +451,7 @@ class ScreenSLP(Tuner):
 
     def _tell_screen(self, state, query, ev):
         if self.search == "cma" and sum(len(q) for q, _ in state.screen_log) >= self._seeded(state):  # a generation
-            self._tell_strategy(state, query.thetas, self._ok_phi(state, ev)[2])
+            self._tell_strategy(state, query.thetas, self._ok_phi(state, ev)[2], ev)
         state.screen_log.append((query.thetas, ev))
         if sum(len(q) for q, _ in state.screen_log) < len(state.screen_all):
             return state
@@ -509,6 +533,33 @@ class ScreenSLP(Tuner):
         elif state.pending.any():
             state.phase = "jacobian"
         else:
+            self._start_polish(state)
+        return state
+
+    def _start_polish(self, state):
+        """After the local solves: CMA-ES from their best point on the problem's own merit (the
+        solves' merit asks for a grip margin the problem does not, and their linear models stall on
+        peaks that jump between points), with the screen's batch as its population."""
+        if self.polish == 0 or state.phase == "polish":
+            state.phase = "done"
+            return
+        best = [b for b in state.best if np.isfinite(b.value)]
+        if not best:
+            state.phase = "done"
+            return
+        first = min(best, key=lambda b: (not b.holds, b.value)).theta
+        lo, hi = state.problem.log_bounds()
+        state.polish_es = strategy(first, self.polish_sigma, lo, hi, state.seed + 2, self.local * self.radii)
+        state.phase = "polish"
+
+    def _tell_polish(self, state, query, ev):
+        phi = true_merit(ev, state.problem, len(state.draws), self.penalty)
+        state.polish_es = told(state.polish_es, query.thetas, phi.tolist())
+        for i in range(len(phi)):
+            if ev.valid[i]:
+                state.polished = state.polished.told(ev.holds[i], phi[i], query.thetas[i])
+        state.generation += 1
+        if state.generation >= self.polish:
             state.phase = "done"
         return state
 
@@ -544,9 +595,10 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
+        polish = f", then {self.polish} CMA-ES generations of polish" if self.polish else ""
         return (
             f"a screen of {self._screen_text(starts)}, then {self.local} local solves side by side, "
-            f"{self.steps} Jacobian steps (forward mode, {n_params} tangents)"
+            f"{self.steps} Jacobian steps (forward mode, {n_params} tangents){polish}"
         )
 
     def _screen_text(self, starts):
@@ -581,11 +633,13 @@ class ScreenSLP(Tuner):
         )
 
     def expected_evaluations(self, starts):
-        return (starts + self._sobol_count(starts)) // (self.local * self.radii) + 2 * self.steps
+        return (starts + self._sobol_count(starts)) // (self.local * self.radii) + 2 * self.steps + self.polish
 
     def candidates(self, state):
         """Each local solve's best evaluated point (holding first, then by merit); the given starts
         if nothing ran."""
         order = sorted(range(len(state.best)), key=lambda k: (not state.best[k].holds, state.best[k].value))
         out = [state.best[k].theta for k in order if np.isfinite(state.best[k].value)]
+        if state.polished.theta is not None:
+            out = out + [state.polished.theta]  # the selection on validation draws decides between them
         return out or list(state.starts)

@@ -1,0 +1,155 @@
+"""The tuning problems of benchmarks/problems/, each solved by `coopjax tune --problem` at the default
+method and budget, and judged apart from the tuner: on a dense, fresh design of the uncertain
+parameters (`tuning.design.dense`: none of the tuner's draws), at the judge's step and at half of
+it, after a search between the draws for each requirement's worst case (`tuning.judging.worst_case`).
+
+    python -m benchmarks.problem_suite [--out DIR] [--cached] [NAME ...]
+
+Per problem: solved (every requirement met on the dense design, at dt and dt/2), the objective
+against the best-known answer (benchmarks/problems/best_known.json, `python -m benchmarks.best_known`),
+the least violation where the problem is infeasible, the exit code and the requirement the command
+named, and the wall time with an empty compile cache (and with it filled by that run: `--cached`).
+Writes DIR/suite.json and prints the table of docs/tuning.md ("The problem suite").
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+PROBLEMS = os.path.join(HERE, "problems")
+
+
+def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> tuple[dict, float, int, str]:
+    """One `coopjax tune --problem` with its compile cache in `cache` (`tool`: the coopjax checkout
+    to run instead of this one): (result, wall s, exit, stdout)."""
+    start = time.perf_counter()
+    env = os.environ | {"COOPJAX_CACHE": cache} | ({"PYTHONPATH": tool} if tool else {})
+    done = subprocess.run(
+        [sys.executable, "-m", "coopjax.cli", "tune", "--problem", path, "--out", out, *extra],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - start
+    if done.returncode not in (0, 3):
+        raise SystemExit(f"{path}: exit {done.returncode}\n{done.stderr[-3000:]}")
+    return json.load(open(out)), wall, done.returncode, done.stdout
+
+
+def judged(params: dict, problem) -> dict:
+    """The dense, fresh judgement of one answer: at dt (and dt/2, the two-step check), with the
+    worst cases found between the draws added, and again at dt/2 alone."""
+    from tuning import design
+    from tuning.judging import JUDGE_DT, judge, worst_case
+
+    draws = design.dense(problem.uncertain)
+    first = judge(params, draws, problem, check_step=True)
+    extra = worst_case(params, draws, problem, verdict=first)
+    v = judge(params, draws, problem, check_step=True, extra=extra)
+    half = judge(params, draws, problem, dt=JUDGE_DT / 2, check_step=False, extra=extra)
+    return {
+        "solved": bool(v.holds and half.holds),
+        "objective": v.objective,
+        "objective_half": half.objective,
+        "violation": max(v.violation, half.violation),
+        "unmeasured": v.unmeasured,
+        "binding": None if v.binding is None else v.binding["requirement"],
+        "requirements": [
+            {k: r[k] for k in ("requirement", "worst", "margin", "met")} | {"worst_half": h["worst"]}
+            for r, h in zip(v.requirements, half.requirements)
+        ],
+        "step_error": v.step_error,
+        "draws": len(draws) + len(extra),
+        "found_between": len(extra),
+    }
+
+
+def named(stdout: str) -> str:
+    """The command's own line on what an answer misses (empty when it holds)."""
+    return next((line for line in stdout.splitlines() if line.startswith("the answer written misses")), "")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("names", nargs="*", help="problem names (default: every file of benchmarks/problems/)")
+    parser.add_argument("--out", default="problem_suite", help="folder of the runs' files")
+    parser.add_argument("--cached", action="store_true", help="run each problem again with its compile cache filled")
+    parser.add_argument("--seed", type=int, default=0, help="the tuner's seed")
+    parser.add_argument("--tool", help="a coopjax checkout whose command solves the problems (default: this one)")
+    args = parser.parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from tuning.problem import Problem
+
+    known_path = os.path.join(PROBLEMS, "best_known.json")
+    known = json.load(open(known_path)) if os.path.exists(known_path) else {}
+    paths = sorted(glob.glob(os.path.join(PROBLEMS, "*.toml")))
+    if args.names:
+        paths = [p for p in paths if os.path.basename(p)[:-5] in args.names]
+    os.makedirs(args.out, exist_ok=True)
+    rows = []
+    for path in paths:
+        name = os.path.basename(path)[:-5]
+        problem = Problem.from_toml(path)
+        out = os.path.join(args.out, name + ".json")
+        with tempfile.TemporaryDirectory() as cache:
+            extra = ("--seed", str(args.seed))
+            result, cold, code, stdout = tune(path, out, cache, extra, args.tool)
+            cached = tune(path, out + ".cached.json", cache, extra, args.tool)[1] if args.cached else None
+        row = {"problem": name, "exit": code, "named": named(stdout), "cold_s": cold, "cached_s": cached}
+        row |= judged(result["params"], problem)
+        best = known.get(name)
+        if best:
+            row["best_known"] = best["objective"] if best["feasible"] else None
+            row["best_violation"] = None if best["feasible"] else best["violation"]
+            row["ratio"] = row["objective"] / best["objective"] if best["feasible"] and row["solved"] else None
+            row["violation_ratio"] = (
+                row["violation"] / best["violation"] if not best["feasible"] and best["violation"] > 0 else None
+            )
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+        with open(os.path.join(args.out, "suite.json"), "w") as f:
+            json.dump(rows, f, indent=1)
+    print(table(rows))
+    return 0
+
+
+def table(rows: list[dict]) -> str:
+    fmt = lambda x, spec: "" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
+    lines = [
+        "| problem | solved | objective (N) | best known | ratio | least violation (best known) | exit "
+        "| cold s | cached s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        violation = "" if r["solved"] else f"{r['violation']:.3g} ({fmt(r.get('best_violation'), '.3g')})"
+        lines.append(
+            f"| {r['problem']} | {'yes' if r['solved'] else 'no'} | {fmt(r['objective'], '.4g')} | "
+            f"{fmt(r.get('best_known'), '.4g')} | {fmt(r.get('ratio'), '.3f')} | {violation} | {r['exit']} | "
+            f"{r['cold_s']:.0f} | {fmt(r['cached_s'], '.0f')} |"
+        )
+    ratios = [r["ratio"] for r in rows if r.get("ratio") is not None]
+    if ratios:
+        lines.append("")
+        lines.append(
+            f"solved {sum(r['solved'] for r in rows if r.get('best_known') is not None)} of "
+            f"{sum(r.get('best_known') is not None for r in rows)} feasible; objective / best known: median "
+            f"{statistics.median(ratios):.3f}, worst {max(ratios):.3f}"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""The judge (tuning.judging) on the cases a search is drawn to: a run beyond the judge's step limit,
+a run that diverges, a worst case that lies between the judged draws."""
+
+import numpy as np
+import pytest
+
+import coopjax as cj
+from coopjax.stability import stable_dt
+from coopjax.step_check import TOLERANCE
+from tuning import design
+from tuning import judging as judgement
+from tuning.problem import Problem, Requirement
+
+# Table 1's gains on a gripper four times as damped: its linearised loop needs dt <= 9.96e-4 s,
+# just below the judge's 1e-3.
+STIFF = Problem(names=("K_GP",), fixed=(("R_g", 400.0),))
+TABLE1 = {"K_GP": 0.5}
+
+
+def test_a_run_beyond_the_judges_step_limit_gets_the_limits_values():
+    params = cj.make_params(dtype="float64", M_b=np.array([1.0]), R_g=400.0)
+    assert stable_dt(params, judgement.judge_config())[0][0] < judgement.JUDGE_DT  # the premise
+    v = judgement.judge(TABLE1, [1.0], STIFF, check_step=True)
+    assert v.measured and v.unmeasured == 0.0
+    assert v.per_case["status"] == ["ok"] and v.per_case["dt"] == [judgement.JUDGE_DT / 2]
+    # The dt -> 0 limit, from two finer steps that agree: the judge's values are within tolerances.
+    fine = [cj.simulate(params, "carry", dt=dt, check_dt=False).metrics for dt in (1.25e-4, 6.25e-5)]
+    for name, (kind, tol) in TOLERANCE.items():
+        a, b = (float(np.asarray(getattr(m, name))[0]) for m in fine)
+        judged = v.per_case[name][0]
+        scale = 1.0 if kind == "absolute" else abs(b)
+        assert abs(a - b) < 0.1 * tol * scale, name  # the limit, two ways
+        assert abs(judged - b) < tol * scale, name
+
+
+def test_without_refinement_the_same_run_is_beyond_its_limit():
+    config = judgement.judge_config(metrics=("peak_grip",))
+    params = cj.make_params(dtype="float64", M_b=np.array([1.0]), R_g=400.0)
+    from coopjax import evaluation
+
+    plain = evaluation.evaluate(params, config)
+    assert plain["status"].tolist() == [3.0]  # Status.STEP_BEYOND_LIMIT
+    refined = evaluation.evaluate(params, config, refine=2)
+    assert refined["status"].tolist() == [0.0] and refined["dt"].tolist() == [5e-4]
+    assert np.isfinite(refined["peak_grip"]).all()
+
+
+def test_a_diverging_candidate_orders_below_every_measured_one():
+    problem = Problem(names=("K_GP",), require=(Requirement("peak_grip", "at_most", 12.0),))
+    # K_GP = 20 diverges at every refined step the judge tries; Table 1's 0.5 runs and misses the
+    # (tight) peak bound: a measured miss.
+    verdicts = judgement.judge([{"K_GP": 20.0}, TABLE1], [1.0, 4.0], problem, check_step=False)
+    diverged, missed = verdicts
+    assert not diverged.measured and diverged.unmeasured > 0
+    assert np.isfinite(diverged.unmeasured) and np.isfinite(diverged.violation)
+    assert missed.measured and missed.unmeasured == 0 and missed.violation > 0 and not missed.holds
+    assert judgement.preferred(verdicts) == 1  # a measured miss beats a run that did not finish
+    assert judgement.preferred(verdicts[::-1]) == 0
+    assert missed.binding["metric"] == "peak_grip"
+
+
+def test_a_worst_draw_between_grid_points_is_found():
+    # Table 1's peak grip over light bodies has a bump near 0.63 kg, between the grid's points.
+    problem = Problem(names=("K_GP",), uncertain=(("M_b", "loguniform", 0.56, 0.72),))
+    grid = design.held_out(problem.uncertain, 4)  # 0.56, 0.605, 0.666, 0.72 kg
+    v = judgement.judge(TABLE1, grid, problem, check_step=False)
+    found = judgement.worst_case(TABLE1, grid, problem, verdict=v, rounds=6)
+    # Targets: the grip requirement, the peak term, the lag term. The peak's worst between the grid
+    # points is worse than every grid point's, and a dense scan agrees where it is.
+    peak_at = found[1]
+    w = judgement.judge(TABLE1, found, problem, check_step=False)
+    assert w.per_case["peak_grip"][1] > max(v.per_case["peak_grip"])
+    dense = design.dense(problem.uncertain, 65)
+    scan = judgement.judge(TABLE1, dense, problem, check_step=False).per_case["peak_grip"]
+    assert w.per_case["peak_grip"][1] >= max(scan) - 0.02 * max(scan)
+    assert not np.isclose(grid[:, 0], peak_at[0]).any()
+
+
+@pytest.mark.parametrize("status", ["diverged", "step_beyond_limit", "unstable_loop"])
+def test_every_unmeasured_case_has_a_finite_badness_of_at_least_one(status):
+    from coopjax.status import Status
+
+    code = np.array([Status[status.upper()]])
+    badness = judgement._badness(code, np.array([1.0]), np.array([4.0]), np.array([3.0]))
+    assert np.isfinite(badness).all() and badness[0] >= 1.0
+    assert judgement._badness(np.array([Status.OK]), np.array([np.nan]), np.array([4.0]), np.array([0.5]))[0] == 0
