@@ -87,6 +87,9 @@ def main(argv=None) -> int:
     parser.add_argument("--cached", action="store_true", help="run each problem again with its compile cache filled")
     parser.add_argument("--seed", type=int, default=0, help="the tuner's seed")
     parser.add_argument("--tool", help="a coopjax checkout whose command solves the problems (default: this one)")
+    parser.add_argument(
+        "--table", action="store_true", help="run nothing: print the table of DIR/suite.json against best_known.json"
+    )
     args = parser.parse_args(argv)
     import jax
 
@@ -95,6 +98,10 @@ def main(argv=None) -> int:
 
     known_path = os.path.join(PROBLEMS, "best_known.json")
     known = json.load(open(known_path)) if os.path.exists(known_path) else {}
+    if args.table:
+        rows = [compare(r, known.get(r["problem"])) for r in json.load(open(os.path.join(args.out, "suite.json")))]
+        print(table(rows))
+        return 0
     paths = sorted(glob.glob(os.path.join(PROBLEMS, "*.toml")))
     if args.names:
         paths = [p for p in paths if os.path.basename(p)[:-5] in args.names]
@@ -110,20 +117,24 @@ def main(argv=None) -> int:
             cached = tune(path, out + ".cached.json", cache, extra, args.tool)[1] if args.cached else None
         row = {"problem": name, "exit": code, "named": named(stdout), "cold_s": cold, "cached_s": cached}
         row |= judged(result["params"], problem)
-        best = known.get(name)
-        if best:
-            row["best_known"] = best["objective"] if best["feasible"] else None
-            row["best_violation"] = None if best["feasible"] else best["violation"]
-            row["ratio"] = row["objective"] / best["objective"] if best["feasible"] and row["solved"] else None
-            row["violation_ratio"] = (
-                row["violation"] / best["violation"] if not best["feasible"] and best["violation"] > 0 else None
-            )
-        rows.append(row)
+        rows.append(compare(row, known.get(name)))
         print(json.dumps(row), file=sys.stderr, flush=True)
         with open(os.path.join(args.out, "suite.json"), "w") as f:
             json.dump(rows, f, indent=1)
     print(table(rows))
     return 0
+
+
+def compare(row: dict, best: dict | None) -> dict:
+    """The row with its best-known objective (feasible problems) or least violation (infeasible)."""
+    if best:
+        row["best_known"] = best["objective"] if best["feasible"] else None
+        row["best_violation"] = None if best["feasible"] else best["violation"]
+        row["ratio"] = row["objective"] / best["objective"] if best["feasible"] and row["solved"] else None
+        row["violation_ratio"] = (
+            row["violation"] / best["violation"] if not best["feasible"] and best["violation"] > 0 else None
+        )
+    return row
 
 
 def table(rows: list[dict]) -> str:

@@ -84,3 +84,17 @@ def test_every_unmeasured_case_has_a_finite_badness_of_at_least_one(status):
     badness = judgement._badness(code, np.array([1.0]), np.array([4.0]), np.array([3.0]))
     assert np.isfinite(badness).all() and badness[0] >= 1.0
     assert judgement._badness(np.array([Status.OK]), np.array([np.nan]), np.array([4.0]), np.array([0.5]))[0] == 0
+
+
+def test_training_prices_a_candidate_beyond_its_step_limit_above_every_measured_one():
+    from tuning.evaluate import Evaluator
+    from tuning.tuners import Query
+
+    problem = Problem(names=("K_GP",))
+    # K_GP = 3: the loop needs dt <= 8.2e-4 s at 1 kg, beyond the training step (2e-3 s).
+    thetas = np.log([[0.5], [3.0]])
+    ev = Evaluator(problem, None)(Query(thetas, np.array([[1.0], [2.0]])))
+    assert ev.valid.tolist() == [True, False]
+    assert ev.unmeasured[0] == 0 and 1.0 <= ev.unmeasured[1] < np.inf
+    bad = ev.bad(1e6)
+    assert np.isfinite(bad).all() and bad[1] > 1e6 > ev.f[0]

@@ -92,7 +92,7 @@ class State:
     problem: object = None
     es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
     polish_es: object = None  # the polish's evolution strategy
-    polished: Best = Best()  # the polish's best point, by the problem's own merit (`true_merit`)
+    polished: Best = Best()  # the polish's best point, by its merit (`polish_merit`)
     generation: int = 0  # polish generations told
 
 
@@ -112,13 +112,14 @@ def merit(out: dict, problem, M: int, penalty, swi_penalty, swi_margin):
     return phi + penalty * np.maximum(out["c"], 0.0).sum(1) + swi_penalty * gap.sum(1)
 
 
-def true_merit(ev, problem, M: int, penalty) -> np.ndarray:
-    """The problem's own merit per candidate, for the polish: its objective with hard aggregates plus
-    `penalty` per unit of constraint violation (the grip's RMS shortfall in N, lengths in mm); no
-    margin asked beyond the requirements. A candidate whose runs are not measured gets a finite value
+def polish_merit(tuner, ev, problem, M: int) -> np.ndarray:
+    """The polish's merit per candidate: the problem's objective with hard aggregates, `penalty` per
+    unit of constraint violation, and half the local solves' grip margin (without one, the polish
+    settles on the edge of losing the grip at the training draws, and loses it between them: measured
+    on a 4-parameter uncertain box). A candidate whose runs are not measured gets a finite value
     above every measured one (`Evaluation.bad`)."""
-    phi = sum(np.asarray(aggregate(ev.parts[:, seg], over)) for seg, over in segments(problem, M))
-    phi = phi + penalty * np.maximum(ev.c, 0.0).sum(1)
+    out = _outputs(ev)
+    phi = merit(out, problem, M, tuner.penalty, tuner.swi_penalty, 0.5 * tuner.swi_margin)
     return np.where(ev.valid & np.isfinite(phi), phi, ev.bad(BAD))
 
 
@@ -299,8 +300,8 @@ class ScreenSLP(Tuner):
     steps: int = setting(12, "Jacobian steps of the local solves", "--steps")
     polish: int = setting(
         16,
-        "CMA-ES generations that polish the best local solve on the problem's own merit (no margin), "
-        "in batches of the screen's shape",
+        "CMA-ES generations that polish the best local solve on the problem's own merit (half the grip "
+        "margin), in batches of the screen's shape",
         "--polish",
     )
     polish_sigma: float = 0.3  # the polish's initial step, log units
@@ -553,7 +554,7 @@ class ScreenSLP(Tuner):
         state.phase = "polish"
 
     def _tell_polish(self, state, query, ev):
-        phi = true_merit(ev, state.problem, len(state.draws), self.penalty)
+        phi = polish_merit(self, ev, state.problem, len(state.draws))
         state.polish_es = told(state.polish_es, query.thetas, phi.tolist())
         for i in range(len(phi)):
             if ev.valid[i]:
