@@ -17,6 +17,7 @@ STIFF = Problem(names=("K_GP",), fixed=(("R_g", 400.0),))
 TABLE1 = {"K_GP": 0.5}
 
 
+@pytest.mark.slow  # two runs at 1.25e-4 and 6.25e-5 s (64,000 steps); the refinement itself is in CI (below)
 def test_a_run_beyond_the_judges_step_limit_gets_the_limits_values():
     params = cj.make_params(dtype="float64", M_b=np.array([1.0]), R_g=400.0)
     assert stable_dt(params, judgement.judge_config())[0][0] < judgement.JUDGE_DT  # the premise
@@ -59,6 +60,7 @@ def test_a_diverging_candidate_orders_below_every_measured_one():
     assert missed.binding["metric"] == "peak_grip"
 
 
+@pytest.mark.slow  # 7 judgings and a dense scan of 65 draws
 def test_a_worst_draw_between_grid_points_is_found():
     # Table 1's peak grip over light bodies has a bump near 0.63 kg, between the grid's points.
     problem = Problem(names=("K_GP",), uncertain=(("M_b", "loguniform", 0.56, 0.72),))

@@ -49,6 +49,8 @@ COMMANDS = {
         "tune",
         "--steps",
         "3",
+        "--polish",
+        "2",
         "--screen",
         "8",
         "--local",

@@ -13,7 +13,8 @@ from test_tuning import BASE, PROBLEM, THETA, TUNER
 
 # The smallest tune that still trains, selects and judges: every plain-run test uses it.
 SMALL_TUNE = (
-    "--starts 2 --train-masses 2 --held-out 2 --params gains --masses loguniform:0.8:4.5 --margin 0 --fixed-masses"
+    "--starts 2 --train-masses 2 --held-out 2 --polish 2 --params gains --masses loguniform:0.8:4.5 --margin 0 "
+    "--fixed-masses"
 ).split()
 # The plain runs end to end (screen-SLP and the gradient tuner, tuned.json against a fresh judgement)
 # are tests/test_examples.py's, on the shipped problem files.
