@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import textwrap
 
 import numpy as np
 
@@ -165,7 +166,7 @@ def plots(session: Session, tuned: Tuned, files: dict, out: Outputs) -> None:
         tuner.history(tuned.result.state),
         out.path(files["history"]),
         f"tuning {what} with {tuner.name} on the {p.switch} model (dt = {p.train_dt:g} s), "
-        f"{p.n_training} training draws\n{tuner.plan_text(len(p.names), session.options.starts)}",
+        f"{p.n_training} training draws\n" + textwrap.fill(tuner.plan_text(len(p.names), session.options.starts), 130),
     )
     start_trace = tuned.start_trace if tuned.start_trace is not None else trace(session, session.first)
     runs = {"start (Table 1)": start_trace, "tuned": trace(session, tuned.params)}
