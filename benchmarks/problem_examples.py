@@ -11,28 +11,12 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
 import os
-import subprocess
 import sys
-import time
+
+from benchmarks.problem_suite import tune  # one `coopjax tune --problem` with nothing cached (cache "")
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
-
-
-def run(path: str, out: str) -> tuple[dict, float, int]:
-    """One `coopjax tune --problem` with nothing cached: (tuned.json, wall s, exit code)."""
-    start = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, "-m", "coopjax.cli", "tune", "--problem", path, "--out", out, "--quiet"],
-        env=os.environ | {"COOPJAX_CACHE": ""},
-        capture_output=True,
-        text=True,
-    )
-    wall = time.perf_counter() - start
-    if done.returncode not in (0, 3):
-        raise SystemExit(f"{path}: exit {done.returncode}\n{done.stderr[-2000:]}")
-    return json.load(open(out)), wall, done.returncode
 
 
 def half_step(result: dict, path: str):
@@ -61,7 +45,7 @@ def main(argv=None) -> int:
     rows = []
     for path in paths:
         name = os.path.basename(path)[:-5]
-        result, wall, code = run(path, os.path.join(args.out, name + ".json"))
+        result, wall, code, _ = tune(path, os.path.join(args.out, name + ".json"), "", ("--quiet",))
         half = half_step(result, path)
         for r, h in zip(result["requirements"], half.requirements):
             scale, unit = (1e3, "mm") if r["unit"] == "m" else (1.0, r["unit"])

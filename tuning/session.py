@@ -27,7 +27,7 @@ from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
-from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, select, worst_case
+from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
 from tuning.training import starting_points
 from tuning.tuners import Tuner
@@ -353,8 +353,6 @@ def trade_off(verdicts: list[Verdict]) -> str | None:
     worst miss) and the best value of it among the candidates that meet every other one on the
     validation draws ("with min_grip >= F_lim held at every draw, the smallest peak_grip found is
     43.1 N"); None when some candidate holds."""
-    from tuning.judging import preferred
-
     if any(v.holds for v in verdicts):
         return None
     chosen = verdicts[preferred(verdicts)]
