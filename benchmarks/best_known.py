@@ -18,7 +18,6 @@ infeasible one it finds the least violation.
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import os
 import time
@@ -201,11 +200,10 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from benchmarks.problem_suite import problem_files
     from tuning.problem import Problem
 
-    paths = sorted(glob.glob(os.path.join(PROBLEMS, "*.toml")))
-    if args.names:
-        paths = [p for p in paths if os.path.basename(p)[:-5] in args.names]
+    paths = problem_files(PROBLEMS, args.names)
     if args.merge:
         return merge(paths, args.merge)
     for path in paths:

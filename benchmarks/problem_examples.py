@@ -10,11 +10,10 @@ Prints the table of docs/tuning.md ("The example problems"); the runs' files sta
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 import sys
 
-from benchmarks.problem_suite import tune  # one `coopjax tune --problem` with nothing cached (cache "")
+from benchmarks.problem_suite import problem_files, tune  # one `coopjax tune --problem` with nothing cached (cache "")
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
@@ -38,9 +37,7 @@ def main(argv=None) -> int:
     parser.add_argument("names", nargs="*", help="example names (default: every file of docs/problems/)")
     parser.add_argument("--out", default="problem_examples", help="folder of the runs' files")
     args = parser.parse_args(argv)
-    paths = sorted(glob.glob(os.path.join(ROOT, "docs", "problems", "*.toml")))
-    if args.names:
-        paths = [p for p in paths if os.path.basename(p)[:-5] in args.names]
+    paths = problem_files(os.path.join(ROOT, "docs", "problems"), args.names)
     os.makedirs(args.out, exist_ok=True)
     rows = []
     for path in paths:

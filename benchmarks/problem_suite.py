@@ -75,6 +75,12 @@ def judged(params: dict, problem) -> dict:
     }
 
 
+def problem_files(folder: str, names=()) -> list[str]:
+    """The problem files of `folder`, sorted; only those of `names` (file names without .toml) if given."""
+    paths = sorted(glob.glob(os.path.join(folder, "*.toml")))
+    return [p for p in paths if os.path.basename(p)[:-5] in names] if names else paths
+
+
 def named(stdout: str) -> str:
     """The command's own line on what an answer misses (empty when it holds)."""
     return next((line for line in stdout.splitlines() if line.startswith("the answer written misses")), "")
@@ -102,9 +108,7 @@ def main(argv=None) -> int:
         rows = [compare(r, known.get(r["problem"])) for r in json.load(open(os.path.join(args.out, "suite.json")))]
         print(table(rows))
         return 0
-    paths = sorted(glob.glob(os.path.join(PROBLEMS, "*.toml")))
-    if args.names:
-        paths = [p for p in paths if os.path.basename(p)[:-5] in args.names]
+    paths = problem_files(PROBLEMS, args.names)
     os.makedirs(args.out, exist_ok=True)
     rows = []
     for path in paths:
