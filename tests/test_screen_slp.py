@@ -12,7 +12,7 @@ from scipy.optimize import minimize
 from tuning import driver
 from tuning.problem import Problem
 from tuning.tuners import Evaluation, Query
-from tuning.tuners.screen_slp import ScreenSLP, diverse_best
+from tuning.tuners.screen_slp import ScreenSLP, diverse_best, polish_merit
 
 # Charalambous and Conn's CB2: max of three smooth functions, minimum 1.9522245 at (1.1390, 0.8996),
 # where all three are active (a kink that a smooth maximum's gradient zigzags across).
@@ -289,3 +289,23 @@ def test_the_linear_program_is_the_model_of_any_problem_at_its_minimum():
     assert fall == pytest.approx(out["phi"] - model(d), rel=1e-7, abs=1e-7)
     others = rng.uniform(-radius, radius, (4000, n))
     assert min(model(x) for x in others) >= model(d) - 1e-7
+
+
+def test_where_no_solve_holds_the_polish_minimises_the_judges_violation():
+    """A misses the grip by 3 N (0.3 of F_lim) at all three draws, B by 6 N at one. The priced sum
+    of misses prefers B; the judge's violation (the largest relative miss) prefers A, and so does the
+    polish where no local solve held."""
+    M, zeros = 3, np.zeros((2, 3))
+    shortfall = np.array([[3.0, 3.0, 3.0], [6.0, 0.0, 0.0]])
+    ev = Evaluation(
+        f=np.zeros(2),
+        c=shortfall,
+        parts=np.concatenate([zeros, zeros], axis=1),
+        valid=np.ones(2, bool),
+        holds=np.zeros(2, bool),
+        min_swi=zeros,
+        miss=(shortfall - 0.01) / 10.0,
+    )
+    tuner = ScreenSLP()
+    assert np.argmin(polish_merit(tuner, ev, PROBLEM, M)) == 1
+    assert np.argmin(polish_merit(tuner, ev, PROBLEM, M, infeasible=True)) == 0

@@ -107,7 +107,9 @@ def _algebra(problem: Problem, kind: str | None, scalar, K: int):
 
     def outputs(runs, bounds):
         t = combine(problem, runs, bounds, K)
-        return dict(f=t.f, c=t.c, parts=t.parts, min_swi=t.min_swi), dict(holds=t.holds, finite=t.metrics["finite"])
+        return dict(f=t.f, c=t.c, parts=t.parts, min_swi=t.min_swi), dict(
+            holds=t.holds, finite=t.metrics["finite"], miss=t.miss
+        )
 
     if kind is None:
         return jax.jit(lambda runs, bounds: outputs(runs, bounds))
@@ -256,6 +258,7 @@ class Evaluator:
             gradient=None if gradient is None else np.asarray(gradient),
             jacobian=None if jac is None else {k: np.asarray(v) for k, v in jac.items()},
             unmeasured=np.where(valid, 0.0, np.maximum(unmeasured, 1.0 / (M * len(self.problem.configs)))),
+            miss=np.asarray(rest["miss"]),
         )
 
     def _beyond(self, params, K: int, M: int) -> np.ndarray:

@@ -62,6 +62,8 @@ def opening(session: Session) -> None:
         + ", ".join(f"{c.scenario} dt = {c.dt:g} s" for c in problem.configs)
         + f"); {describe_draws(problem.uncertain, problem.training_draws())} per step"
     )
+    for note in session.notes:
+        print(f"note: {note}")
 
 
 def closing(session: Session, tuned: Tuned, files: dict, nulls: list, seconds: float) -> int:

@@ -29,7 +29,7 @@ from tuning import driver
 from tuning.design import describe as describe_draws
 from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
-from tuning.training import starting_points
+from tuning.training import measurable_step, starting_points
 from tuning.tuners import Tuner
 
 
@@ -92,6 +92,7 @@ class Session(NamedTuple):
     base: Params
     first: dict
     held_out: np.ndarray
+    notes: tuple = ()  # what the session changed in the problem, and why (`training.measurable_step`)
 
     def starts(self, seed: int | None = None) -> np.ndarray:
         """The (K, n) log-parameter starts every tuner of this session begins from."""
@@ -105,6 +106,7 @@ class Session(NamedTuple):
             "tuner": self.tuner.name,
             "tuner_settings": dataclasses.asdict(self.tuner),
             **dataclasses.asdict(self.options),
+            "notes": list(self.notes),
         }
 
 
@@ -206,6 +208,7 @@ def prepare(
     if base.batch_shape:
         raise InputError("base: the base parameters of a session must be a single set, not a batch", "base")
     first = {n: float(np.asarray(base.get(n)).ravel()[0]) for n in problem.names}
+    problem, note = measurable_step(problem, base, first)
     first_set = base.replace(**first)
     for config in problem.configs:  # the first start must survive its first step, in training and judging
         check_step(first_set, config)
@@ -214,7 +217,8 @@ def prepare(
         tuner.init(problem, np.clip(to_log(first, problem.names), *problem.log_bounds())[None], options.seed)
     except InputError as error:
         raise InputError(f"{tuner.name} cannot start on this problem: {error}", error.field or "tuner") from None
-    return Session(problem, tuner, options, base, first, problem.held_out_draws(options.held_out))
+    notes = (note,) if note else ()
+    return Session(problem, tuner, options, base, first, problem.held_out_draws(options.held_out), notes)
 
 
 def ends(session: Session) -> np.ndarray:

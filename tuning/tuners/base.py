@@ -41,6 +41,9 @@ class Evaluation(NamedTuple):
     # 1 for a run that diverged plus, for a step beyond its loop's limit, 1 + log2 of how far. A
     # tuner orders invalid candidates by it (never a NaN that ties them).
     unmeasured: np.ndarray | None = None
+    # (C, Q) how far each requirement misses at each draw by the judge's measure (`Terms.miss`:
+    # relative to the bound's size, <= 0 when met).
+    miss: np.ndarray | None = None
 
     def bad(self, scale: float) -> np.ndarray:
         """(C,) a finite value for each invalid candidate that orders it above every valid one:
@@ -69,6 +72,14 @@ class Best(NamedTuple):
         for x, v, h, good in zip(thetas, values, holds, ok):
             best = best.told(h, v, x) if good else best
         return best
+
+
+def violation(ev: Evaluation) -> np.ndarray:
+    """(C,) the judge's violation at the evaluated draws (`Verdict.violation`): the largest relative
+    miss of any requirement at any draw, 0 when all are met."""
+    if ev.miss is None or not ev.miss.shape[1]:
+        return np.zeros(len(ev.f))
+    return np.maximum(np.nan_to_num(ev.miss, nan=np.inf).max(1), 0.0)
 
 
 def worst_constraint(ev: Evaluation) -> np.ndarray:

@@ -61,12 +61,14 @@ from tuning.tuners.base import (
     least_margin,
     register,
     setting,
+    violation,
     worst_constraint,
 )
 from tuning.tuners.cmaes import sample, strategy, told
 
 SHORTEST = 1e-4  # log units: a trust region this small has converged
 BAD = 1e6  # the merit CMA-ES is told for a point whose runs are not measured (x (1 + unmeasured))
+FEASIBILITY = 1e3  # N of the polish's merit per unit of relative violation, where no solve holds
 
 
 @dataclasses.dataclass
@@ -93,6 +95,9 @@ class State:
     es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
     polish_es: object = None  # the polish's evolution strategy
     polished: Best = Best()  # the polish's best point, by its merit (`polish_merit`)
+    # No local solve met every requirement at every training draw: the polish minimises the judge's
+    # violation first (`polish_merit`), and the objective only where it is 0.
+    infeasible: bool = False
     generation: int = 0  # polish generations told
 
 
@@ -112,14 +117,22 @@ def merit(out: dict, problem, M: int, penalty, swi_penalty, swi_margin):
     return phi + penalty * np.maximum(out["c"], 0.0).sum(1) + swi_penalty * gap.sum(1)
 
 
-def polish_merit(tuner, ev, problem, M: int) -> np.ndarray:
+def polish_merit(tuner, ev, problem, M: int, infeasible: bool = False) -> np.ndarray:
     """The polish's merit per candidate: the problem's objective with hard aggregates, `penalty` per
     unit of constraint violation, and half the local solves' grip margin (without one, the polish
     settles on the edge of losing the grip at the training draws, and loses it between them: measured
     on a 4-parameter uncertain box). A candidate whose runs are not measured gets a finite value
-    above every measured one (`Evaluation.bad`)."""
+    above every measured one (`Evaluation.bad`).
+
+    `infeasible` (no local solve met every requirement): `FEASIBILITY` x the judge's violation (the
+    largest relative miss, `violation`) plus the objective. The sum of priced misses over the draws
+    is not what the judge reports when requirements fight: it trades one draw's large miss for
+    many small ones, and one requirement's miss for another's in N rather than relative to bound."""
     out = _outputs(ev)
-    phi = merit(out, problem, M, tuner.penalty, tuner.swi_penalty, 0.5 * tuner.swi_margin)
+    if infeasible:
+        phi = FEASIBILITY * violation(ev) + merit(out, problem, M, 0.0, 0.0, 0.0)
+    else:
+        phi = merit(out, problem, M, tuner.penalty, tuner.swi_penalty, 0.5 * tuner.swi_margin)
     return np.where(ev.valid & np.isfinite(phi), phi, ev.bad(BAD))
 
 
@@ -549,12 +562,13 @@ class ScreenSLP(Tuner):
             state.phase = "done"
             return
         first = min(best, key=lambda b: (not b.holds, b.value)).theta
+        state.infeasible = not any(b.holds for b in best)
         lo, hi = state.problem.log_bounds()
         state.polish_es = strategy(first, self.polish_sigma, lo, hi, state.seed + 2, self.local * self.radii)
         state.phase = "polish"
 
     def _tell_polish(self, state, query, ev):
-        phi = polish_merit(self, ev, state.problem, len(state.draws))
+        phi = polish_merit(self, ev, state.problem, len(state.draws), state.infeasible)
         state.polish_es = told(state.polish_es, query.thetas, phi.tolist())
         for i in range(len(phi)):
             if ev.valid[i]:
