@@ -403,6 +403,11 @@ class Problem:
         """(M, p) training draws for a tuner that keeps them for its whole run."""
         return design.fixed_training(self.uncertain, self.n_draws, self.margin)
 
+    def within_box(self, draws) -> np.ndarray:
+        """(M, p) draws clipped into the uncertain box (training and validation draws span a wider one)."""
+        draws = np.asarray(draws, np.float64).reshape(len(draws), -1)
+        return np.clip(draws, [u.low for u in self.uncertain], [u.high for u in self.uncertain])
+
     def validation_draws(self) -> np.ndarray:
         return design.validation(self.uncertain, self.margin, self.n_validation)
 
