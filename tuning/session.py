@@ -208,7 +208,7 @@ def prepare(
     if base.batch_shape:
         raise InputError("base: the base parameters of a session must be a single set, not a batch", "base")
     first = {n: float(np.asarray(base.get(n)).ravel()[0]) for n in problem.names}
-    problem, note = measurable_step(problem, base, first)
+    problem, note = measurable_step(problem, base, first, options.spread)
     first_set = base.replace(**first)
     for config in problem.configs:  # the first start must survive its first step, in training and judging
         check_step(first_set, config)
