@@ -112,7 +112,7 @@ def test_the_training_step_is_halved_where_the_starts_box_cannot_be_measured():
 
     from coopjax.stability import stable_dt
     from tuning.design import uncertain
-    from tuning.training import LEAST_MEASURED, measurable_step, params_for
+    from tuning.training import LEAST_MEASURED, PROBES, measurable_step, params_for
     from tuning.problem import to_log
 
     wide = Problem(
@@ -120,8 +120,8 @@ def test_the_training_step_is_halved_where_the_starts_box_cannot_be_measured():
     )
     base = wide.base()
     first = {n: float(np.asarray(base.get(n)).ravel()[0]) for n in wide.names}
-    rng = np.random.default_rng(1)
-    probes = to_log(first, wide.names) + rng.uniform(-2.5, 2.5, (64, 2))
+    rng = np.random.default_rng(1)  # as many as the session probes: one compiled linearisation
+    probes = to_log(first, wide.names) + rng.uniform(-2.5, 2.5, (PROBES + 1, 2))
 
     def measured(p):  # the share of random points of the box within the limit at every draw
         prm = params_for(base, p, np.asarray(probes), p.fixed_training_draws())
