@@ -185,7 +185,8 @@ def prepare(
     """Check a session before anything runs. Each mistake is one `InputError` naming its field:
     the problem and the options; whether the tuner ends (on its own, or by `budget`) and can start;
     the memory its batches and the judge's tables need; and the first start's step, in training and
-    in judging (its linearised loop must be stable there).
+    in judging (its linearised loop must be stable there). The training step is halved where nearly
+    none of the starts' box can be measured at it (`training.measurable_step`; `Session.notes`).
 
     Args:
       problem: the problem (default: the default `Problem`).
