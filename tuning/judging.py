@@ -71,21 +71,20 @@ class Verdict(NamedTuple):
         """The validated objective: `objective` if every requirement holds, else infinity."""
         return self.objective if self.holds else math.inf
 
+    def _misses(self) -> list[float]:
+        """Per requirement, how far it misses beyond its tolerance, relative to its bound's scale (0: met)."""
+        return [max(0.0, -r["margin"] - r["tolerance"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements]
+
     @property
     def violation(self) -> float:
         """How far the worst requirement misses, relative to its bound's scale (0: all met), over the
         measured cases; finite, so that it orders candidates."""
-        misses = [
-            max(0.0, -r["margin"] - r["tolerance"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements
-        ]
-        return max([m for m in misses if np.isfinite(m)], default=0.0)
+        return max([m for m in self._misses() if np.isfinite(m)], default=0.0)
 
     @property
     def binding(self) -> dict | None:
         """The requirement that misses most (relative to its bound's scale), or None if all are met."""
-        misses = [
-            max(0.0, -r["margin"] - r["tolerance"]) / max(abs(r["bound_value"]), 1e-12) for r in self.requirements
-        ]
+        misses = self._misses()
         if not self.requirements or max(misses) <= 0:
             return None
         return self.requirements[int(np.argmax(misses))]

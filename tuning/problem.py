@@ -389,6 +389,11 @@ class Problem:
         lo, hi = zip(*(self.box(n) for n in self.names))
         return np.log(lo), np.log(hi)
 
+    def log_box_around(self, theta, spread: float) -> tuple[np.ndarray, np.ndarray]:
+        """The search box within x/÷ e^spread of the log-point theta (the starts' and the screen's box)."""
+        lo, hi = self.log_bounds()
+        return np.maximum(lo, theta - spread), np.minimum(hi, theta + spread)
+
     @property
     def uncertain_names(self) -> tuple[str, ...]:
         return tuple(u.name for u in self.uncertain)

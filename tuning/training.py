@@ -213,7 +213,7 @@ def measurable_step(
         return problem, None
     lo, hi = problem.log_bounds()
     start = np.clip(to_log(first, problem.names), lo, hi)
-    a, b = np.maximum(lo, start - spread), np.minimum(hi, start + spread)
+    a, b = problem.log_box_around(start, spread)
     probes = np.concatenate([start[None], a + (b - a) * qmc.Sobol(len(a), seed=0).random(PROBES)])
     draws = problem.fixed_training_draws()
     params = params_for(base, problem, jnp.asarray(probes), draws)
@@ -245,7 +245,7 @@ def starting_points(
     start = np.clip(to_log(first, names), lo, hi)
     rng = np.random.default_rng(seed)
     points = [start]
-    a, b = np.maximum(lo, start - spread), np.minimum(hi, start + spread)
+    a, b = problem.log_box_around(start, spread)
     for _ in range(50):
         if len(points) >= count:
             break

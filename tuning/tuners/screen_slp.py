@@ -394,9 +394,7 @@ class ScreenSLP(Tuner):
 
     def _box(self, state):
         """The screen's box (log units): x/÷ e^spread around the first start, within the search box."""
-        lo, hi = state.problem.log_bounds()
-        first = state.starts[0]
-        return np.maximum(lo, first - self.spread), np.minimum(hi, first + self.spread)
+        return state.problem.log_box_around(state.starts[0], self.spread)
 
     def screen_points(self, state) -> np.ndarray:
         """The given starts, then the Sobol points in the screen's box."""
