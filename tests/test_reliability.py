@@ -51,6 +51,8 @@ COMMANDS = {
         "3",
         "--polish",
         "2",
+        "--polish-more",
+        "0",
         "--screen",
         "8",
         "--local",

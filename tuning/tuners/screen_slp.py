@@ -337,8 +337,8 @@ class ScreenSLP(Tuner):
     )
     polish_more: int = setting(
         32,
-        f"more polish generations, while the polish's best merit still falls by {POLISH_GAIN:.0%} over "
-        f"{PATIENCE} generations",
+        f"more polish generations, while the polish's best merit still falls by {POLISH_GAIN:g} of itself "
+        f"over {PATIENCE} generations",
         "--polish-more",
     )
     polish_sigma: float = 0.3  # the polish's initial step, log units
