@@ -51,8 +51,6 @@ COMMANDS = {
         "3",
         "--polish",
         "2",
-        "--polish-more",
-        "0",
         "--screen",
         "8",
         "--local",

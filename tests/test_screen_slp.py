@@ -309,24 +309,3 @@ def test_where_no_solve_holds_the_polish_minimises_the_judges_violation():
     tuner = ScreenSLP()
     assert np.argmin(polish_merit(tuner, ev, PROBLEM, M)) == 1
     assert np.argmin(polish_merit(tuner, ev, PROBLEM, M, infeasible=True)) == 0
-
-
-def test_the_polish_goes_on_while_it_improves_and_stops_when_it_does_not():
-    """From one short local solve far from CB2's optimum, 2 polish generations leave most of the gap;
-    the polish then goes on while its best falls by `POLISH_GAIN` over `PATIENCE` generations, and
-    stops once it does not, before its cap."""
-    from tuning.tuners.screen_slp import PATIENCE, POLISH_GAIN
-
-    starts = [[2.0, 2.0], [0.0, -1.0]]
-    gens, runs = {}, {}
-    for more in (0, 60):
-        tuner = ScreenSLP(screen=0, local=2, steps=1, polish=2, polish_more=more)
-        runs[more] = solve(tuner, starts, Analytic())
-        gens[more] = runs[more].state.generation
-    assert gens[0] == 2
-    assert 2 + PATIENCE < gens[60] < 2 + 60  # it went on, and stopped on its own
-    value = lambda r: cb2(r.state.polished.theta)[0].max()
-    assert value(runs[60]) - CB2_MIN < 0.3 * (value(runs[0]) - CB2_MIN)
-    trace = [v for _, v in runs[60].state.polish_trace]
-    assert trace[-1] >= trace[-1 - PATIENCE] - POLISH_GAIN * abs(trace[-1 - PATIENCE])  # why it stopped
-    assert trace[-2] < trace[-2 - PATIENCE] - POLISH_GAIN * abs(trace[-2 - PATIENCE])  # and not before

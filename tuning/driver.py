@@ -154,8 +154,6 @@ def run(
         record.add(query, evaluation, elapsed, trajectories)
         if recorder is not None:
             recorder.record(ident, log, clock)
-        if bar.total is not None and bar.n >= bar.total:  # a tuner that goes on while it improves
-            bar.total = bar.n + 1
         bar.update(1)
         if on_step is not None:
             on_step(state, query, evaluation)

@@ -69,10 +69,6 @@ from tuning.tuners.cmaes import sample, strategy, told
 SHORTEST = 1e-4  # log units: a trust region this small has converged
 BAD = 1e6  # the merit CMA-ES is told for a point whose runs are not measured (x (1 + unmeasured))
 FEASIBILITY = 1e3  # N of the polish's merit per unit of relative violation, where no solve holds
-# The polish goes on past `polish` generations while its best point's merit still falls by this share
-# over the last `PATIENCE` generations (up to `polish_more` more generations).
-POLISH_GAIN = 0.01
-PATIENCE = 8
 
 
 @dataclasses.dataclass
@@ -103,7 +99,6 @@ class State:
     # violation first (`polish_merit`), and the objective only where it is 0.
     infeasible: bool = False
     generation: int = 0  # polish generations told
-    polish_trace: list = dataclasses.field(default_factory=list)  # the polish's best (holds, merit) per generation
 
 
 def segments(problem, M: int) -> list[tuple[slice, str]]:
@@ -139,19 +134,6 @@ def polish_merit(tuner, ev, problem, M: int, infeasible: bool = False) -> np.nda
     else:
         phi = merit(out, problem, M, tuner.penalty, tuner.swi_penalty, 0.5 * tuner.swi_margin)
     return np.where(ev.valid & np.isfinite(phi), phi, ev.bad(BAD))
-
-
-def still_improving(trace) -> bool:
-    """Whether the polish's best point, (holds, merit) per generation, improved over the last
-    `PATIENCE` generations: it came to meet every requirement, or its merit fell by `POLISH_GAIN`.
-    A long polish found the lag problem's good basin (merit 5.8 to 3.1 mm) where 16 generations had
-    not; on the default problem it gains nothing, and stops there."""
-    if len(trace) <= PATIENCE:
-        return True
-    (held, before), (holds, now) = trace[-1 - PATIENCE], trace[-1]
-    if holds != held:
-        return holds
-    return bool(np.isfinite(now) and now < before - POLISH_GAIN * abs(before))
 
 
 def program(theta, out: dict, radius, lo, hi, problem, M, penalty, swi_penalty, swi_margin):
@@ -335,12 +317,6 @@ class ScreenSLP(Tuner):
         "margin), in batches of the screen's shape",
         "--polish",
     )
-    polish_more: int = setting(
-        32,
-        f"more polish generations, while the polish's best merit still falls by {POLISH_GAIN:g} of itself "
-        f"over {PATIENCE} generations",
-        "--polish-more",
-    )
     polish_sigma: float = 0.3  # the polish's initial step, log units
     radius: float = 0.25  # initial trust region, log units
     radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
@@ -372,7 +348,7 @@ class ScreenSLP(Tuner):
             raise InputError(f"jacobian is {self.jacobian!r}: exact or fd", "jacobian")
         if self.search not in SEARCHES:
             raise InputError(f"search is {self.search!r}: {' or '.join(SEARCHES)}", "search")
-        for field, least in (("screen", 0), ("steps", 1), ("local", 1), ("polish", 0), ("polish_more", 0)):
+        for field, least in (("screen", 0), ("steps", 1), ("local", 1), ("polish", 0)):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(f"{field} is {value!r}: a whole number, at least {least}", field)
@@ -596,10 +572,7 @@ class ScreenSLP(Tuner):
             if ev.valid[i]:
                 state.polished = state.polished.told(ev.holds[i], phi[i], query.thetas[i])
         state.generation += 1
-        state.polish_trace.append((state.polished.holds, state.polished.value))
-        if state.generation >= self.polish + self.polish_more or (
-            state.generation >= self.polish and not still_improving(state.polish_trace)
-        ):
+        if state.generation >= self.polish:
             state.phase = "done"
         return state
 
@@ -635,8 +608,7 @@ class ScreenSLP(Tuner):
         return self._plan(state)
 
     def plan_text(self, n_params, starts):
-        more = f" (up to {self.polish + self.polish_more} while it improves)" if self.polish_more else ""
-        polish = f", then {self.polish} CMA-ES generations of polish{more}" if self.polish else ""
+        polish = f", then {self.polish} CMA-ES generations of polish" if self.polish else ""
         return (
             f"a screen of {self._screen_text(starts)}, then {self.local} local solves side by side, "
             f"{self.steps} Jacobian steps (forward mode, {n_params} tangents){polish}"
