@@ -18,16 +18,16 @@ SMALL_TUNE = (
 ).split()
 
 
+# The plain runs end to end (screen-SLP and the gradient tuner, tuned.json against a fresh judgement)
+# are tests/test_examples.py's, on the shipped problem files.
+
+
 def test_the_help_of_every_setting_renders(capsys):
     """argparse formats each help text with %: one setting's help with a bare % breaks `tune --help`."""
     with pytest.raises(SystemExit) as exit_:
         cli.main(["tune", "--help"])
     assert exit_.value.code == 0
     assert "--polish" in capsys.readouterr().out
-
-
-# The plain runs end to end (screen-SLP and the gradient tuner, tuned.json against a fresh judgement)
-# are tests/test_examples.py's, on the shipped problem files.
 
 
 @pytest.mark.slow  # every registered tuner on one clock: CMA-ES and random search are exercised here
