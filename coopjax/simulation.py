@@ -68,6 +68,30 @@ def metrics_of(config: Config, checkpoint: bool | str = True, adjoint: str = "au
     return MetricsOf(config, checkpoint, adjoint)
 
 
+class MetricsRefined(NamedTuple):
+    """A run's metrics at dt / r, r a traced count: called on `(params, r)`, r an int32 batch whose
+    values are all equal (the batch's r is its first). One program for a step and its halvings,
+    where `refinable(config)`: a configuration at dt / 2 compiles nothing new. Forward only."""
+
+    config: Config
+
+    def __call__(self, args):
+        params, r = args
+        c, substeps = self.config, r.reshape(-1)[0]
+        metrics = objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps, substeps)
+        return integrate(params, c, metrics, checkpoint=False, substeps=substeps).metrics
+
+    def batch_order(self, args):
+        return INTEGRATORS[self.config.method].batch_order(args[0])
+
+
+def refinable(config: Config) -> bool:
+    """Whether `MetricsRefined` can run this configuration: its horizon and windows lie on its grid."""
+    return objectives.on_grid(scenarios.get(config.scenario), config.dt, config.n_steps * config.dt) and (
+        abs(config.horizon / config.dt - config.n_steps) < 1e-9
+    )
+
+
 def memory_limit() -> int:
     """Half of this machine's physical memory, in bytes: the most one table or record may take."""
     try:

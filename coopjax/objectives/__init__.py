@@ -21,6 +21,7 @@ from coopjax.objectives.base import (
     check_names,
     loss,
     mark_unusable,
+    on_grid,
     register,
 )
 from coopjax.objectives import grip, margin, tracking  # noqa: E402,F401  (the built-in metrics register themselves)
@@ -36,5 +37,6 @@ __all__ = [
     "check_names",
     "loss",
     "mark_unusable",
+    "on_grid",
     "register",
 ]

@@ -17,15 +17,28 @@ from coopjax.status import Status
 
 
 class Context(NamedTuple):
-    """What a metric knows of the run: the scenario (its windows), the step and the step count."""
+    """What a metric knows of the run: the scenario (its windows), the step and the step count.
+
+    `dt` and `n_steps` are the grid the windows are drawn on. A run at `substeps` steps of
+    dt / substeps per grid step (a traced count: one program for a step and its halvings, which is
+    how the two-step check and the judge's refinements run) counts its steps `k` on the finer grid;
+    `h` is its step. The windows must then lie on the grid of dt (`on_grid`), so that each window
+    holds the same instants whatever the count. What a metric decides in Python (whether a window is
+    empty, its duration) is read on the grid of dt, so it stays static.
+    """
 
     scenario: Scenario
     dt: float
     n_steps: int
+    substeps: Any = 1
 
-    def window(self, name: str) -> tuple[int, int] | None:
-        """Inclusive step-index bounds of a scenario window (None if the scenario has none by that
-        name). A horizon that ends before the window leaves it empty (count 0)."""
+    @property
+    def h(self):
+        """The run's step: dt / substeps."""
+        return self.dt if _is_one(self.substeps) else self.dt / self.substeps
+
+    def grid_window(self, name: str) -> tuple[int, int] | None:
+        """Inclusive bounds of a scenario window on the grid of dt (None without the window)."""
         if name not in self.scenario.windows:
             return None
         t0, t1 = self.scenario.windows[name]
@@ -33,9 +46,24 @@ class Context(NamedTuple):
         k1 = min(self.n_steps, math.floor(t1 / self.dt + 1e-9))
         return k0, k1
 
+    def window(self, name: str):
+        """Inclusive step-index bounds of a scenario window, in the run's steps (None if the
+        scenario has none by that name). A horizon that ends before the window leaves it empty
+        (count 0)."""
+        bounds = self.grid_window(name)
+        if bounds is None or _is_one(self.substeps):
+            return bounds
+        return bounds[0] * self.substeps, bounds[1] * self.substeps
+
     def count(self, name: str) -> int:
-        bounds = self.window(name)
+        """The window's grid points on the grid of dt (0: the window is missing or empty)."""
+        bounds = self.grid_window(name)
         return 0 if bounds is None else max(0, bounds[1] - bounds[0] + 1)
+
+    def duration(self, name: str) -> float:
+        """The window's length in s (0.0 without the window): the same at every substep count."""
+        bounds = self.grid_window(name)
+        return 0.0 if bounds is None else max(0, bounds[1] - bounds[0]) * self.dt
 
     def inside(self, name: str, k):
         """Whether sample k lies in the named window (a traced bool; False without the window)."""
@@ -43,6 +71,18 @@ class Context(NamedTuple):
         if bounds is None:
             return jnp.zeros_like(k, bool)
         return (k >= bounds[0]) & (k <= bounds[1])
+
+
+def _is_one(substeps) -> bool:
+    return isinstance(substeps, int) and substeps == 1
+
+
+def on_grid(scenario: Scenario, dt: float, T: float) -> bool:
+    """Whether the horizon and every window's ends lie on the grid of dt (to 1e-9 of a step): then a
+    run at dt / r, for any r, counts r times the grid's steps in each window, as a run configured
+    at dt / r would."""
+    ends = [T, *(t for pair in scenario.windows.values() for t in pair)]
+    return all(abs(t / dt - round(t / dt)) < 1e-9 for t in ends)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,10 +212,11 @@ class MetricSet(NamedTuple):
     scenario: Scenario
     dt: float
     n_steps: int
+    substeps: Any = 1  # traced: steps of dt / substeps (`Context`)
 
     @property
     def context(self) -> Context:
-        return Context(self.scenario, self.dt, self.n_steps)
+        return Context(self.scenario, self.dt, self.n_steps, self.substeps)
 
     def init(self, batch_shape, dtype):
         return {n: METRICS[n].init(batch_shape, dtype, self.context) for n in self.names}

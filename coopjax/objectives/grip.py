@@ -48,11 +48,6 @@ def _step_inside(ctx, name, k):
     return (k >= bounds[0]) & (k < bounds[1])
 
 
-def _duration(ctx, name) -> float:
-    bounds = ctx.window(name)
-    return 0.0 if bounds is None else max(0, bounds[1] - bounds[0]) * ctx.dt
-
-
 # --- min_grip: (least force, reached flags); with after_reach also the largest force, which a robot
 # that never reaches F_lim reports instead.
 
@@ -93,7 +88,7 @@ def _min_update(acc, obs, params, ctx):
 
 def _min_finalize(acc, ctx):
     least, peak, _ = acc
-    if _duration(ctx, "grip") == 0:
+    if ctx.duration("grip") == 0:
         return jnp.full(least.shape[1:], jnp.nan, least.dtype)
     if peak is None:
         return least.min(0)
@@ -193,11 +188,11 @@ def _window_mean(excess, window):
         now = _reach(reached, obs.aux.F, params)
         if obs.path is not None:
             inside = _step_inside(ctx, window, obs.k).astype(total.dtype)
-            total = total + inside * _integral(excess, obs, params, ctx, ctx.dt, now)
+            total = total + inside * _integral(excess, obs, params, ctx, ctx.h, now)
         return total, now if now is not None else reached
 
     def finalize(acc, ctx):
-        span = _duration(ctx, window)
+        span = ctx.duration(window)
         return acc[0] / span if span else jnp.full_like(acc[0], jnp.nan)
 
     return init, update, finalize
@@ -232,11 +227,11 @@ def _impact_update(total, obs, params, ctx):
         return total
     bounds = ctx.window("grip")
     after = (obs.k >= (bounds[1] if bounds else 0)).astype(total.dtype)
-    return total + after * _integral(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), obs, params, ctx, ctx.dt, None)
+    return total + after * _integral(lambda F, p: jnp.maximum(F - p.F_max[None], 0.0), obs, params, ctx, ctx.h, None)
 
 
 def _impact_finalize(total, ctx):
-    bounds = ctx.window("grip")
+    bounds = ctx.grid_window("grip")  # on the grid of dt: the same span at every substep count
     span = max(0, ctx.n_steps - (bounds[1] if bounds else 0)) * ctx.dt
     return total / span if span else jnp.full_like(total, jnp.nan)
 

@@ -21,9 +21,10 @@ def _update(total, obs, params, ctx):
 
 
 def _finalize(total, ctx):
-    bounds = ctx.window("lag")
-    span = 0 if bounds is None else bounds[1] - bounds[0]  # the window's length in steps
-    return jnp.sqrt(total / (2 * span)) if span > 0 else jnp.full_like(total, jnp.nan)
+    bounds = ctx.grid_window("lag")
+    span = 0 if bounds is None else bounds[1] - bounds[0]  # the window's length in grid steps
+    # In the run's steps: `substeps` per grid step (a traced count where the run is refined).
+    return jnp.sqrt(total / (2 * span * ctx.substeps)) if span > 0 else jnp.full_like(total, jnp.nan)
 
 
 RMS_LAG = register(
