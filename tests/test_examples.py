@@ -118,6 +118,7 @@ def test_the_two_scenario_example_runs_end_to_end(fresh_dir, capsys):
     assert {r["scenarios"] == ["carry", "paper"] for r in result["requirements"]} == {True}
 
 
+@pytest.mark.slow  # compiles the hard model's gradient (25 s); its names and commands are checked in test_docs
 def test_the_optax_script_of_the_docs_runs_and_prints_each_requirement():
     text = open(os.path.join(ROOT, "docs", "tuning.md")).read()
     section = text.split("## Tuning from Python", 1)[1]

@@ -234,6 +234,7 @@ def test_a_new_tuner_runs_as_a_plain_tune_with_its_own_flag(registered, fresh_di
     assert tune_cli.make_tuner(args) == BestStart(pick=1)
 
 
+@pytest.mark.slow  # a whole session (18 s); the registry, the flag and the command's choice stay in CI (above)
 def test_a_new_tuner_runs_through_a_session(registered):
     problem = pb.Problem(
         names=pb.GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False

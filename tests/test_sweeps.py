@@ -174,6 +174,7 @@ def _coopjax_lines(err):
     return [ln for ln in err.splitlines() if ln.strip()]
 
 
+@pytest.mark.slow  # three processes (14 s); the two-process table itself stays in CI
 def test_processes_with_different_options_are_refused_by_every_one_before_any_work(tmp_path):
     port = _free_port()
     procs = [
