@@ -106,20 +106,21 @@ def _runs(params: Params, config: Config, check_step: bool, block: int, r: int =
     if shares_program(config) and (check_step or r > 1):
         # One program for every step of the check and the refinements (r traced): the run, its
         # dt / 2 and every halving compile once (a lone run at dt keeps its own, 4 % faster). Its
-        # round-off differs from a program built for one step (dt a constant) by ~1e-11 relative,
-        # which the sliding-mode step does not amplify.
+        # round-off differs from a program built for one step (dt a constant): 1e-11 relative in
+        # float64, which the sliding-mode step does not amplify.
         metrics = step_check.halved(config).metrics if check_step else config.metrics
         program = MetricsRefined(dataclasses.replace(config, metrics=metrics))
 
         def at(substeps):
-            counts = np.full(_size(params), substeps, np.int32)
+            counts = np.full(params.batch_shape[0], substeps, np.int32)
             return devices.run(program, (params, counts), fixed_block=True, block=block)
 
         coarse, fine = at(r), at(2 * r) if check_step else None
     else:
-        coarse = devices.run(metrics_of(_at(config, r)), params, fixed_block=True, block=block)
-        halved = step_check.halved(_at(config, r))
-        fine = devices.run(metrics_of(halved), params, fixed_block=True, block=block) if check_step else None
+        stepped = config if r == 1 else dataclasses.replace(config, dt=config.dt / r)
+        coarse = devices.run(metrics_of(stepped), params, fixed_block=True, block=block)
+        if check_step:
+            fine = devices.run(metrics_of(step_check.halved(stepped)), params, fixed_block=True, block=block)
     out = {n: np.array(v, np.float64) for n, v in zip(coarse._fields, jax.device_get(list(coarse)))}
     if check_step:
         names = step_check.checked(config)
@@ -135,14 +136,6 @@ def shares_program(config: Config) -> bool:
     chatters, and its chatter follows round-off, so its runs keep programs of their own, and a sweep's
     values equal `simulate`'s bit for bit."""
     return config.method == "filippov" and refinable(config)
-
-
-def _at(config: Config, r: int) -> Config:
-    return config if r == 1 else dataclasses.replace(config, dt=config.dt / r)
-
-
-def _size(params: Params) -> int:
-    return int(np.shape(jax.tree_util.tree_leaves(params)[0])[-1])
 
 
 def _status(out: dict, growth, beyond, check_step: bool) -> np.ndarray:

@@ -33,9 +33,9 @@ class Run(NamedTuple):
     unroll: int = 1
     adjoint: str = "auto"
 
-    def metric_set(self) -> objectives.MetricSet:
+    def metric_set(self, substeps=1) -> objectives.MetricSet:
         c = self.config
-        return objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps)
+        return objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps, substeps)
 
     def __call__(self, params: Params) -> Solution:
         return differentiate(self._integrate, params, batched_leaves, self.adjoint)
@@ -77,9 +77,9 @@ class MetricsRefined(NamedTuple):
 
     def __call__(self, args):
         params, r = args
-        c, substeps = self.config, r.reshape(-1)[0]
-        metrics = objectives.MetricSet(c.metrics, scenarios.get(c.scenario), c.dt, c.n_steps, substeps)
-        return integrate(params, c, metrics, checkpoint=False, substeps=substeps).metrics
+        substeps = r.reshape(-1)[0]
+        metrics = Run(self.config).metric_set(substeps)
+        return integrate(params, self.config, metrics, checkpoint=False, substeps=substeps).metrics
 
     def batch_order(self, args):
         return INTEGRATORS[self.config.method].batch_order(args[0])
@@ -87,9 +87,7 @@ class MetricsRefined(NamedTuple):
 
 def refinable(config: Config) -> bool:
     """Whether `MetricsRefined` can run this configuration: its horizon and windows lie on its grid."""
-    return objectives.on_grid(scenarios.get(config.scenario), config.dt, config.n_steps * config.dt) and (
-        abs(config.horizon / config.dt - config.n_steps) < 1e-9
-    )
+    return objectives.on_grid(scenarios.get(config.scenario), config.dt, config.horizon)
 
 
 def memory_limit() -> int:
