@@ -8,6 +8,12 @@ loading it from the cache); and, per kind of the tuner's evaluations, how many r
 seconds. Programs that take under 0.1 s in every phase are summed in one row. Writes
 benchmarks/tune_time.json.
 
+`--python` measures the Python example of docs/tuning.md ("Tuning from Python") the same way, in a
+fresh process with an empty cache and then cached: the seconds from the start of Python to its
+first gradient, the first gradient's call itself, the 30 optax steps, and the first `tuning.judge`.
+The script is run after `coopjax.use_cache()` on a folder of the benchmark's own, so that the second
+run can load what the first compiled (the script itself keeps nothing).
+
 The runs import coopjax and tuning as the calling process would, so another checkout of the project
 is measured the same way with `PYTHONPATH=/path/to/checkout python -m benchmarks.tune_time --out
 other.json`, run from this checkout (where `benchmarks` is found), for a before-and-after table of a
@@ -61,6 +67,58 @@ print(json.dumps(dict(code=code, wall=time.perf_counter() - start, programs=prog
 """
 
 
+# The docs' script, timed at its first gradient and its judge: the two lines it must contain are
+# replaced by timed copies (a missing line is an error, so the script cannot drift from the docs').
+TIMED = {
+    "    grad, value = gradient_and_value(theta)\n": (
+        "    _t = time.perf_counter()\n"
+        "    grad, value = gradient_and_value(theta)\n"
+        "    grad.block_until_ready()\n"
+        "    times.setdefault('first_gradient_call', time.perf_counter() - _t)\n"
+        "    times.setdefault('to_first_gradient', time.perf_counter() - start)\n"
+    ),
+    "verdict = tuning.judge(tuned, problem=problem)": (
+        "times['steps'] = time.perf_counter() - start - times['to_first_gradient']\n"
+        "_t = time.perf_counter()\n"
+        "verdict = tuning.judge(tuned, problem=problem)\n"
+        "times['first_judge'] = time.perf_counter() - _t"
+    ),
+}
+PYTHON_CHILD = r"""
+import contextlib, io, json, sys, time
+start = time.perf_counter()
+times = {}
+import coopjax
+coopjax.use_cache()  # $COOPJAX_CACHE: the empty folder, then what the first run kept
+with contextlib.redirect_stdout(io.StringIO()):
+    scope = {"__name__": "docs_example", "time": time, "times": times, "start": start}
+    exec(compile(sys.argv[1], "docs/tuning.md", "exec"), scope)
+times["wall"] = time.perf_counter() - start
+print(json.dumps(times))
+"""
+
+
+def docs_script() -> str:
+    """The Python example of docs/tuning.md, with its first gradient and its judge timed."""
+    text = open(os.path.join(os.path.dirname(__file__), "..", "docs", "tuning.md")).read()
+    script = text.split("## Tuning from Python", 1)[1].split("```python", 1)[1].split("```", 1)[0]
+    for line, timed in TIMED.items():
+        if line not in script:
+            sys.exit(f"docs/tuning.md's Python example no longer has the line {line.strip()!r}")
+        script = script.replace(line, timed)
+    return script
+
+
+def python_example(folder: str, cache: str) -> dict:
+    env = {**os.environ, "COOPJAX_CACHE": cache}
+    done = subprocess.run(
+        [sys.executable, "-c", PYTHON_CHILD, docs_script()], env=env, cwd=folder, capture_output=True, text=True
+    )
+    if done.returncode != 0:
+        sys.exit(f"the docs' Python example failed ({done.returncode}):\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def one(seed: int, folder: str, cache: str) -> dict:
     env = {**os.environ, "COOPJAX_CACHE": cache}
     out = os.path.join(folder, "tuned.json")
@@ -101,10 +159,13 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "tune_time.json"))
+    parser.add_argument("--python", action="store_true", help="time the Python example of docs/tuning.md instead")
     args = parser.parse_args(argv)
     import jax
 
     report = {"jax": jax.__version__, "cores": os.cpu_count()}
+    if args.python:
+        return python_main(args, report)
     with tempfile.TemporaryDirectory() as folder:
         cache = os.path.join(folder, "cache")
         for label in ("empty cache", "cached"):
@@ -115,6 +176,26 @@ def main(argv=None):
     with open(args.out, "w") as f:
         json.dump(report, f, indent=1)
     print(f"\nwrote {args.out} (jax {report['jax']}, {report['cores']} cores, one device per core)")
+
+
+def python_main(args, report) -> None:
+    with tempfile.TemporaryDirectory() as folder:
+        cache = os.path.join(folder, "cache")
+        print(
+            "| docs' Python example | to the first gradient [s] | its call [s] | 30 steps after it [s] | "
+            "first judge [s] | in all [s] |\n|---|---|---|---|---|---|"
+        )
+        for label in ("empty cache", "cached"):
+            t = report[label] = python_example(folder, cache)
+            print(
+                f"| {label} | {t['to_first_gradient']:.1f} | {t['first_gradient_call']:.1f} | {t['steps']:.1f} | "
+                f"{t['first_judge']:.1f} | {t['wall']:.1f} |",
+                flush=True,
+            )
+    out = args.out if args.out.endswith("python.json") else args.out.replace(".json", "_python.json")
+    with open(out, "w") as f:
+        json.dump(report, f, indent=1)
+    print(f"\nwrote {out} (jax {report['jax']}, {report['cores']} cores, one device per core)")
 
 
 if __name__ == "__main__":

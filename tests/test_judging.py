@@ -48,6 +48,12 @@ def test_without_refinement_the_same_run_is_beyond_its_limit():
     assert refined["status"].tolist() == [0.0] and refined["dt"].tolist() == [5e-4]
     assert np.isfinite(refined["peak_grip"]).all() and refined["step_error"][0] < 1
     assert devices._compiled.cache_info().currsize == 1
+    # The judge's unchecked runs (selection, the search between draws) join that program, and their
+    # values are the checked run's to round-off.
+    unchecked = evaluation.evaluate(params, config, refine=2, shared=True)
+    assert devices._compiled.cache_info().currsize == 1
+    np.testing.assert_allclose(unchecked["peak_grip"], refined["peak_grip"], rtol=1e-11)
+    assert unchecked["dt"].tolist() == [5e-4]
 
 
 @pytest.mark.slow  # K_GP = 20 is refined to dt/16 before it counts as diverged: four more programs

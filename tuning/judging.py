@@ -167,7 +167,9 @@ def judge(
     runs = []
     for s in problem.scenarios:
         config = judge_config(dt, s, judged_metrics(problem, s)).validate()
-        runs.append(evaluation.evaluate(params, config, check_step=check_step, block=JUDGE_BLOCK, refine=REFINE))
+        # Checked or not (the verdict, the selection, the search between draws), one program.
+        out = evaluation.evaluate(params, config, check_step=check_step, block=JUDGE_BLOCK, refine=REFINE, shared=True)
+        runs.append(out)
     verdicts = []
     for g in range(G):
         rows = slice(g * M, (g + 1) * M)
