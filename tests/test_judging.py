@@ -1,6 +1,8 @@
 """The judge (tuning.judging) on the cases a search is drawn to: a run beyond the judge's step limit,
 a run that diverges, a worst case that lies between the judged draws."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -87,6 +89,49 @@ def test_a_worst_draw_between_grid_points_is_found():
     scan = judgement.judge(TABLE1, dense, problem, check_step=False).per_case["peak_grip"]
     assert w.per_case["peak_grip"][1] >= max(scan) - 0.02 * max(scan)
     assert not np.isclose(grid[:, 0], peak_at[0]).any()
+    # The draw a round that goes on adds to training: where each missed requirement misses most.
+    assert judgement.missed_at(v, grid).shape == (0, 1)  # the grip holds on this box
+    bound = Requirement("peak_grip", "at_most", float(np.median(v.per_case["peak_grip"])))
+    strict = dataclasses.replace(problem, require=problem.require + (bound,))
+    both = np.concatenate([grid, found])
+    missed = judgement.judge(TABLE1, both, strict, check_step=False)
+    assert np.array_equal(judgement.missed_at(missed, both), both[[np.argmax(missed.per_case["peak_grip"])]])
+
+
+def test_the_draws_a_round_adds_are_where_each_missed_requirement_misses_most():
+    """`missed_at` on two scenarios and three draws: the least grip over the scenarios, a run that
+    did not finish counts as the worst, and a requirement that is met adds nothing."""
+    draws = np.array([[1.0], [2.0], [4.0]])
+    requirement = lambda metric, kind, met: {
+        "metric": metric,
+        "kind": kind,
+        "met": met,
+        "scenarios": ["carry", "paper"],
+    }
+    verdict = lambda grip, status: judgement.Verdict(
+        objective=0.0,
+        terms=[],
+        requirements=[requirement("min_grip", "at_least", False), requirement("peak_grip", "at_most", True)],
+        worst={},
+        finite=True,
+        measured=True,
+        holds=False,
+        unmeasured=0.0,
+        step_error=float("nan"),
+        step_artefact=False,
+        per_case={
+            "min_grip": grip,
+            "peak_grip": [30.0, 60.0, 20.0, 20.0, 20.0, 20.0],  # the largest at 2 kg, but met
+            "status": status,
+            "scenario": ["carry"] * 3 + ["paper"] * 3,
+            "dt": [1e-3] * 6,
+        },
+    )
+    ok = ["ok"] * 6
+    assert judgement.missed_at(verdict([9.0, 9.5, 9.8, 9.9, 9.9, 8.0], ok), draws).tolist() == [[4.0]]
+    assert judgement.missed_at(
+        verdict([9.0, 9.5, 9.8, 9.9, 9.9, 8.0], ok[:1] + ["diverged"] + ok[2:]), draws
+    ).tolist() == [[2.0]]
 
 
 @pytest.mark.parametrize("status", ["diverged", "step_beyond_limit", "unstable_loop"])

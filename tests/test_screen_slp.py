@@ -309,3 +309,69 @@ def test_where_no_solve_holds_the_polish_minimises_the_judges_violation():
     tuner = ScreenSLP()
     assert np.argmin(polish_merit(tuner, ev, PROBLEM, M)) == 1
     assert np.argmin(polish_merit(tuner, ev, PROBLEM, M, infeasible=True)) == 0
+
+
+class Banded:
+    """An evaluator for any draws: the peak (x0 - log M_b)^2 at each, and the grip lost (by 10 N per
+    log unit of x0 below 0.5) only at the body mass 2 kg, a band between the training draws."""
+
+    compile_s = 0.0
+
+    def __init__(self):
+        self.queries = []
+
+    def warm_up(self, query):
+        pass
+
+    def prepare(self, queries):
+        pass
+
+    def __call__(self, query):
+        self.queries.append(query)
+        x0 = query.thetas[:, :1]
+        mass = np.asarray(query.draws, float).reshape(-1)
+        peak = (x0 - np.log(mass)) ** 2
+        c = np.where(np.isclose(mass, 2.0), 10.0 * np.maximum(0.5 - x0, 0.0), 0.0)
+        jac = None
+        if query.derivative == "jacobian":  # along x0 alone
+            along = lambda d: np.stack([d, np.zeros_like(d)], axis=-1)
+            J_peak = along(2.0 * (x0 - np.log(mass)))
+            jac = {
+                "parts": np.concatenate([J_peak, np.zeros_like(J_peak)], axis=1),
+                "c": along(np.where(c > 0, -10.0, 0.0)),
+                "min_swi": np.zeros_like(J_peak),
+                "f": J_peak[:, 0],
+            }
+        return Evaluation(
+            f=peak.max(1),
+            c=c,
+            parts=np.concatenate([peak, np.zeros_like(peak)], axis=1),
+            valid=np.ones(len(x0), bool),
+            holds=(c <= 0).all(1),
+            min_swi=np.ones_like(c),
+            miss=c / 10.0 - 1e-3,
+            jacobian=jac,
+        )
+
+
+def test_going_on_polishes_from_the_answer_with_the_added_draw_and_meets_the_requirement_there():
+    """`go_on` after a run: every query of the round has the training draws with the added one in
+    place of the nearest, the round ends after `polish_again` generations, and its answer holds at
+    the added draw, which the run before never saw (its answer misses there)."""
+    tuner = ScreenSLP(screen=0, local=2, steps=2, polish=2, polish_again=6)
+    before = solve(tuner, [[0.0, 0.0]], Banded())
+    answer = np.array([0.0, 0.0])  # misses at 2 kg: x0 < 0.5
+    state = tuner.go_on(before.state, answer, np.array([[2.0]]))
+    evaluator = Banded()
+    after = solve(tuner, [[0.0, 0.0]], evaluator, state=state)
+    trained = before.state.draws.reshape(-1)
+    assert not np.isclose(trained, 2.0).any()
+    nearest = np.argmin(np.abs(np.log(trained) - np.log(2.0)))  # its place: the shapes stay
+    assert len(evaluator.queries) == 6
+    for query in evaluator.queries:
+        assert np.array_equal(
+            np.asarray(query.draws).reshape(-1), np.where(np.arange(len(trained)) == nearest, 2.0, trained)
+        )
+    (best,) = tuner.candidates(after.state)
+    assert best[0] >= 0.5 - 1e-12
+    assert np.abs(evaluator.queries[0].thetas - answer).max() < 2.0  # a polish near the answer, sigma 0.3

@@ -14,7 +14,8 @@ import tuning
 from coopjax import cli
 from coopjax.errors import InputError
 from tuning import session
-from tuning.problem import GAINS, Problem
+from tuning.judging import missed_at
+from tuning.problem import GAINS, Problem, Requirement
 from tuning.studies import pareto, race
 from tuning.tuners import TUNERS, Evaluation
 
@@ -165,3 +166,26 @@ def test_the_pareto_study_gives_a_tuner_that_ends_only_by_a_budget_the_plans_tim
     result = pareto.run({"random search": prepared, "CMA-ES": others}, "random search", weights, log=lambda s: None)
     front = [(r["tuner"], r["weight"]) for r in result["pareto"] if r["kind"] == "front"]
     assert front == [(t, w) for w in weights for t in ("random search", "CMA-ES")]
+
+
+@pytest.mark.slow  # 30 s, most of it compiling; the round's parts are tested in CI (test_screen_slp, test_judging)
+def test_an_answer_that_misses_goes_on_with_the_draws_where_it_misses_most():
+    """A peak bound no gain set meets, and validation on two bodies alone: the judge finds
+    the answer missing more than validation did, and the session goes on from it with the draw
+    where it misses most (among the held-out draws and those found between them) added to
+    training; without `again`, no round."""
+    problem = dataclasses.replace(
+        PROBLEM, require=PROBLEM.require + (Requirement("peak_grip", "at_most", 1.0),), n_validation=2
+    )
+    tuner = TUNERS["screen-SLP"](screen=0, local=1, radii=2, steps=1, polish=1, polish_again=2, jacobian="fd")
+    before = session.run(session.prepare(problem, tuner, dataclasses.replace(OPTIONS, again=0)))
+    assert not before.verdict.holds and before.selection["again"] == []
+    assert before.verdict.violation > before.validation.violation
+    judged = np.asarray(before.verdict.per_case["M_b"])[:, None]  # the held-out draws, then those found
+    after = session.run(session.prepare(problem, tuner, OPTIONS))
+    rounds = after.selection["again"]
+    assert 1 <= len(rounds) <= 2
+    assert rounds[0]["added"]["M_b"] == missed_at(before.verdict, judged)[:, 0].tolist()
+    assert after.result.evaluations == before.result.evaluations + tuner.polish_again * len(rounds)
+    kept_new = [r["kept"] == "the new polish's best" for r in rounds]
+    assert (after.params != before.params) == any(kept_new)

@@ -102,8 +102,12 @@ def run(
     total: int | None = None,
     evaluator: Evaluator | None = None,
     on_step=None,
+    state=None,
 ) -> Result:
     """Run (or resume) one tuner until it finishes or the budget is spent.
+
+    `state`: go on from it (`Tuner.go_on`) instead of from the tuner's first state; nothing is
+    replayed or recorded then (the round that goes on follows from the recorded run).
 
     A `recorder` (`Checkpoint`) is given the log after every evaluation, and gives back the log of
     an interrupted run to replay before going on. `total` sizes the progress bar (a tuner's step
@@ -116,8 +120,11 @@ def run(
     ident = identity(tuner, problem, starts, seed)
     log: list[tuple[Query, Evaluation]] = []
     clock: list[tuple[float, int]] = []  # (elapsed s, trajectories) after each logged evaluation
-    state = tuner.init(problem, np.asarray(starts), seed)
-    evaluator.prepare(tuner.later_queries(state))
+    if state is None:
+        state = tuner.init(problem, np.asarray(starts), seed)
+        evaluator.prepare(tuner.later_queries(state))
+    else:
+        recorder = None
     record = Record.empty()
     elapsed, trajectories = 0.0, 0
     saved = recorder.saved(ident) if recorder is not None else None

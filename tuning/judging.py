@@ -341,7 +341,6 @@ def worst_case(
     draws = draws[:, None] if draws.ndim == 1 else draws
     items = problem.uncertain
     p = len(items)
-    to_unit = lambda x: np.stack([_unit(u, x[:, i]) for i, u in enumerate(items)], 1)
     from_unit = lambda z: np.stack([u.at(z[:, i]) for i, u in enumerate(items)], 1)
     targets = _targets(problem)
     if not targets:
@@ -349,7 +348,7 @@ def worst_case(
     v = verdict or judge(values, draws, problem, base, dt, check_step=False)
     scores = np.stack([_score(v, t, len(draws)) for t in targets])  # (T, M): larger is worse
     best = scores.argmax(1)
-    point, score = to_unit(draws)[best], scores[np.arange(len(targets)), best]
+    point, score = problem.to_unit(draws)[best], scores[np.arange(len(targets)), best]
     h = np.full(len(targets), 0.5 / max(1, round(len(draws) ** (1.0 / p)) - 1))
     steps = np.concatenate([np.eye(p), -np.eye(p)])
     for _ in range(rounds):
@@ -367,10 +366,17 @@ def worst_case(
     return from_unit(point)
 
 
-def _unit(u, x):
-    if u.kind == "loguniform":
-        return (np.log(x) - np.log(u.low)) / (np.log(u.high) - np.log(u.low))
-    return (x - u.low) / (u.high - u.low)
+def missed_at(verdict: Verdict, draws) -> np.ndarray:
+    """(k, p) draws: for each requirement `verdict` misses, the draw among those it was judged on
+    (`draws`, then any `extra`, in the judge's order) where it misses most; none when it holds."""
+    draws = np.asarray(draws, np.float64)
+    draws = draws[:, None] if draws.ndim == 1 else draws
+    out = [
+        draws[int(np.argmax(_score(verdict, ("require", i), len(draws))))]
+        for i, r in enumerate(verdict.requirements)
+        if not r["met"]
+    ]
+    return np.unique(np.reshape(out, (-1, draws.shape[1])), axis=0)
 
 
 def _targets(problem: Problem) -> list:

@@ -408,6 +408,17 @@ class Problem:
         """(M, p) training draws for a tuner that keeps them for its whole run."""
         return design.fixed_training(self.uncertain, self.n_draws, self.margin)
 
+    def to_unit(self, draws) -> np.ndarray:
+        """(M, p) draws in the box's unit coordinates (log coordinates for a loguniform parameter)."""
+        draws = np.asarray(draws, np.float64).reshape(len(draws), -1)
+
+        def span(u, x):
+            if u.kind == "loguniform":
+                return (np.log(x) - np.log(u.low)) / (np.log(u.high) - np.log(u.low))
+            return (x - u.low) / (u.high - u.low)
+
+        return np.stack([span(u, draws[:, i]) for i, u in enumerate(self.uncertain)], 1)
+
     def within_box(self, draws) -> np.ndarray:
         """(M, p) draws clipped into the uncertain box (training and validation draws span a wider one)."""
         draws = np.asarray(draws, np.float64).reshape(len(draws), -1)

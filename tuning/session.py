@@ -27,7 +27,7 @@ from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
-from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, preferred, select, worst_case
+from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, missed_at, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
 from tuning.training import measurable_step, starting_points
 from tuning.tuners import Tuner
@@ -66,6 +66,14 @@ class Options:
         "--held-out",
         kind=int,
         check=lambda x: None if x >= 2 else "judge on at least 2 draws (the lightest and the heaviest)",
+    )
+    again: int = setting(
+        1,
+        "rounds that go on from an answer missing a requirement, with the draws where it misses most added to "
+        "training (0: none)",
+        "--again",
+        kind=int,
+        check=lambda x: None if x >= 0 else "it must be 0 or more",
     )
     judge_dt: float = setting(
         JUDGE_DT,
@@ -277,7 +285,9 @@ def run(
     log: Callable[[str], None] = _quiet,
 ) -> Tuned:
     """Run a prepared session: the tuner through the driver, the selection among its candidates on
-    the validation draws, and the judge's verdict on the held-out draws.
+    the validation draws, and the judge's verdict on the held-out draws; where the judge finds the
+    answer missing a requirement worse than validation did, up to `options.again` rounds that go
+    on from it with the draws where it misses most added to training (`Tuner.go_on`).
 
     Args:
       session: from `prepare`.
@@ -325,7 +335,7 @@ def run(
     held = sum(x.holds for x in verdicts)
     log(
         f"  {held} of {len(options)} meet every requirement at every validation draw; the chosen one: "
-        + "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in v.requirements)
+        + _missing(v)
         + f"; objective {v.objective:.4g} N"
     )
     selection = {
@@ -342,18 +352,76 @@ def run(
     )
     selection["trade_off"] = trade_off(verdicts)
     start, start_trace = background.result() if background else (None, None)
-    verdict = judge(options[chosen], session.held_out, problem, session.base, o.judge_dt)
-    # The worst case between the held-out draws, for each requirement and `max` term: the verdict is
-    # on the worst found, not on the worst of a fixed grid. The search starts from the worst of the
-    # held-out and the validation draws (brought into the box): a peak in a narrow band of masses
-    # (90 N at one validation mass, 53 N at every held-out one) is found only from near it.
-    near = np.concatenate([session.held_out, problem.within_box(draws)])
-    found = worst_case(options[chosen], near, problem, session.base, o.judge_dt)
-    new = [x for x in found if not np.isclose(session.held_out, x).all(1).any()]
-    if new:
-        log(f"searching between the held-out draws: {len(new)} worse draw(s) found, judged with them ...")
-        verdict = judge(options[chosen], session.held_out, problem, session.base, o.judge_dt, extra=np.array(new))
+    verdict, new = _judged(session, options[chosen], draws, log)
+    # Where the answer misses a requirement at a draw the tuner never trained on (a narrow band of
+    # the box between its fixed draws), worse than at every validation draw, that draw joins the
+    # training draws and the tuner goes on from the answer (`Tuner.go_on`); the validation, with the
+    # draw, keeps whichever is better, and the judge searches between its draws again.
+    selection["again"] = []
+    for _ in range(o.again):
+        # Only where the judge found the answer missing more than its validation did: a miss the
+        # validation draws saw as large (a grip lost at every draw) is one more training draw cannot lower.
+        if verdict.holds or verdict.violation <= v.violation * (1 + 1e-6):
+            break
+        add = problem.within_box(missed_at(verdict, np.concatenate([session.held_out, new])))
+        state = tuner.go_on(result.state, to_log(options[chosen], problem.names), add)
+        if state is None:
+            break
+        log(
+            f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}: "
+            f"going on with {describe_draws(problem.uncertain, add)} added to the training draws ..."
+        )
+        theta = to_log(options[chosen], problem.names)[None]
+        more = driver.run(tuner, problem, session.base, theta, o.seed, state=state, progress=progress)
+        result = result._replace(
+            elapsed=result.elapsed + more.elapsed,
+            compile_s=result.compile_s + more.compile_s,
+            trajectories=result.trajectories + more.trajectories,
+            evaluations=result.evaluations + more.evaluations,
+        )
+        fresh = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
+        pool = [options[chosen], *fresh]
+        k, verdicts = select(pool, np.concatenate([draws, add]), problem, session.base, o.judge_dt, check_step=False)
+        selection["again"].append(
+            {
+                "added": {u.name: add[:, i].tolist() for i, u in enumerate(problem.uncertain)},
+                "candidates": len(fresh),
+                "kept": "the new polish's best" if k else "the answer before",
+                "violation": [verdicts[0].violation, verdicts[k].violation],
+                "objective": [verdicts[0].objective, verdicts[k].objective],
+            }
+        )
+        if k == 0:
+            log("  the answer before stands (the round found nothing better on the validation draws with them)")
+            break
+        options.append(pool[k])
+        chosen, v = len(options) - 1, verdicts[k]
+        selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts)
+        selection["validation"] = {key: x for key, x in v.row().items() if k not in ("step_error", "step_artefact")}
+        log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
+        verdict, new = _judged(session, options[chosen], draws, log)
     return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
+
+
+def _judged(session: Session, values: dict, validation, log) -> tuple[Verdict, np.ndarray]:
+    """The judge's verdict on the held-out draws and the worst cases found between them, and those
+    (E, p) draws (none when nothing worse was found)."""
+    problem, o = session.problem, session.options
+    verdict = judge(values, session.held_out, problem, session.base, o.judge_dt)
+    # The search starts from the worst of the held-out and the validation draws (brought into the
+    # box): a peak in a narrow band of masses (90 N at one validation mass, 53 N at every held-out
+    # one) is found only from near it.
+    near = np.concatenate([session.held_out, problem.within_box(validation)])
+    found = worst_case(values, near, problem, session.base, o.judge_dt)
+    new = np.array([x for x in found if not np.isclose(session.held_out, x).all(1).any()]).reshape(-1, found.shape[1])
+    if len(new):
+        log(f"searching between the held-out draws: {len(new)} worse draw(s) found, judged with them ...")
+        verdict = judge(values, session.held_out, problem, session.base, o.judge_dt, extra=new)
+    return verdict, new
+
+
+def _missing(v: Verdict) -> str:
+    return "; ".join(f"{r['requirement']}: worst {r['worst']:.4g} {r['unit']}" for r in v.requirements)
 
 
 def trade_off(verdicts: list[Verdict]) -> str | None:

@@ -129,6 +129,12 @@ class Tuner(abc.ABC):
     def candidates(self, state) -> list[np.ndarray]:
         """Log-parameter vectors worth validating, in the tuner's order of preference."""
 
+    def go_on(self, state, theta: np.ndarray, draws: np.ndarray):
+        """A state from which the run goes on near `theta` (log parameters, the chosen answer) with
+        the (k, p) `draws` added to its training draws: the judge found the answer missing a
+        requirement there. None (the default): this tuner does not go on."""
+        return None
+
     def ends(self) -> bool:
         """Whether a run with these settings ends on its own (a plain run needs it); by default,
         `plain_run`."""

@@ -99,6 +99,7 @@ class State:
     # violation first (`polish_merit`), and the objective only where it is 0.
     infeasible: bool = False
     generation: int = 0  # polish generations told
+    until: int | None = None  # the polish ends after this many (None: the tuner's `polish`)
 
 
 def segments(problem, M: int) -> list[tuple[slice, str]]:
@@ -318,6 +319,7 @@ class ScreenSLP(Tuner):
         "--polish",
     )
     polish_sigma: float = 0.3  # the polish's initial step, log units
+    polish_again: int = 8  # polish generations of a round that goes on with the judge's worst draws (`go_on`)
     radius: float = 0.25  # initial trust region, log units
     radii: int = 4  # steps tried per iteration, at radius, radius / 2, ... (values only: cheap beside a Jacobian)
     max_radius: float = 1.0
@@ -572,8 +574,32 @@ class ScreenSLP(Tuner):
             if ev.valid[i]:
                 state.polished = state.polished.told(ev.holds[i], phi[i], query.thetas[i])
         state.generation += 1
-        if state.generation >= self.polish:
+        if state.generation >= (self.polish if state.until is None else state.until):
             state.phase = "done"
+        return state
+
+    def go_on(self, state, theta, draws):
+        """`polish_again` more generations of polish from `theta`, on the training draws with `draws` in: the
+        fixed training draws can miss a narrow band of the box where the answer breaks (a peak of 90 N
+        between masses where it stays under 55 N), which the judge's search between its draws finds.
+        The candidates are then the new polish's best alone."""
+        if self.polish_again == 0:
+            return None
+        state = copy.deepcopy(state, {id(state.problem): state.problem})
+        lo, hi = state.problem.log_bounds()
+        # Each added draw takes the place of the training draw nearest it (max norm in the box's unit
+        # coordinates): the runs keep their shapes, so nothing is compiled again (a new shape cost
+        # 40 s of compiling on two scenarios), and that region of the box stays covered.
+        draws = np.asarray(draws, np.float64).reshape(len(draws), -1)[: len(state.draws)]
+        trained, added = state.problem.to_unit(state.draws), state.problem.to_unit(draws)
+        state.draws, free = state.draws.copy(), list(range(len(state.draws)))
+        for d, z in zip(draws, added):
+            j = min(free, key=lambda i: np.abs(trained[i] - z).max())
+            state.draws[j] = d
+            free.remove(j)
+        state.best, state.lane, state.polished = [], [], Best()
+        state.polish_es = strategy(theta, self.polish_sigma, lo, hi, state.seed + 3, self.local * self.radii)
+        state.phase, state.generation, state.until = "polish", 0, self.polish_again
         return state
 
     def _tell_trials(self, state, query, ev):
