@@ -369,7 +369,7 @@ def run(
             break
         log(
             f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}: "
-            f"going on with {describe_draws(problem.uncertain, add)} added to the training draws ..."
+            f"going on with {describe_draws(problem.uncertain, add)} in the training draws ..."
         )
         theta = to_log(options[chosen], problem.names)[None]
         more = driver.run(tuner, problem, session.base, theta, o.seed, state=state, progress=progress)

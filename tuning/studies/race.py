@@ -80,7 +80,10 @@ def run(
     for seed in seeds:
         tuned = {}
         for name in order:
-            prepared = sessions[name]._replace(options=dataclasses.replace(sessions[name].options, seed=seed))
+            # No round that goes on from the judge's draws (`Options.again`): only screen-SLP has one,
+            # and its draws come from the judge, which the others never see.
+            options = dataclasses.replace(sessions[name].options, seed=seed, again=0)
+            prepared = sessions[name]._replace(options=options)
             if name == reference:
                 limit = driver.Budget()
             elif budget == "time":
