@@ -189,3 +189,4 @@ def test_an_answer_that_misses_goes_on_with_the_draws_where_it_misses_most():
     assert after.result.evaluations == before.result.evaluations + tuner.polish_again * len(rounds)
     kept_new = [r["kept"] == "the new polish's best" for r in rounds]
     assert (after.params != before.params) == any(kept_new)
+    assert "step_error" not in after.selection["validation"]  # selection runs no two-step check

@@ -354,25 +354,25 @@ def run(
     start, start_trace = background.result() if background else (None, None)
     verdict, new = _judged(session, options[chosen], draws, log)
     # Where the answer misses a requirement at a draw the tuner never trained on (a narrow band of
-    # the box between its fixed draws), worse than at every validation draw, that draw joins the
+    # the box between its fixed draws), worse than at every validation draw, that draw goes into the
     # training draws and the tuner goes on from the answer (`Tuner.go_on`); the validation, with the
     # draw, keeps whichever is better, and the judge searches between its draws again.
     selection["again"] = []
     for _ in range(o.again):
-        # Only where the judge found the answer missing more than its validation did: a miss the
-        # validation draws saw as large (a grip lost at every draw) is one more training draw cannot lower.
+        # Only where the judge found the answer missing more than its validation did: where validation
+        # saw the miss as large already (a grip lost), a round measured changed nothing but the time.
         if verdict.holds or verdict.violation <= v.violation * (1 + 1e-6):
             break
         add = problem.within_box(missed_at(verdict, np.concatenate([session.held_out, new])))
-        state = tuner.go_on(result.state, to_log(options[chosen], problem.names), add)
+        theta = to_log(options[chosen], problem.names)
+        state = tuner.go_on(result.state, theta, add)
         if state is None:
             break
         log(
             f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}: "
             f"going on with {describe_draws(problem.uncertain, add)} in the training draws ..."
         )
-        theta = to_log(options[chosen], problem.names)[None]
-        more = driver.run(tuner, problem, session.base, theta, o.seed, state=state, progress=progress)
+        more = driver.run(tuner, problem, session.base, theta[None], o.seed, state=state, progress=progress)
         result = result._replace(
             elapsed=result.elapsed + more.elapsed,
             compile_s=result.compile_s + more.compile_s,
@@ -397,7 +397,7 @@ def run(
         options.append(pool[k])
         chosen, v = len(options) - 1, verdicts[k]
         selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts)
-        selection["validation"] = {key: x for key, x in v.row().items() if k not in ("step_error", "step_artefact")}
+        selection["validation"] = {key: x for key, x in v.row().items() if key not in ("step_error", "step_artefact")}
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
         verdict, new = _judged(session, options[chosen], draws, log)
     return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
