@@ -34,6 +34,7 @@ def test_a_folder_that_cannot_hold_the_cache_is_one_line_and_exit_2(fresh_dir, c
     assert os.listdir(fresh_dir) == ["a-file"]
 
 
+@pytest.mark.slow  # CI's time (25 s): the cache in real processes is checked below, in 13 s
 def test_a_second_run_loads_what_the_first_compiled(tmp_path):
     """In real processes (JAX reads its cache settings once per process): the first run fills this
     machine's subfolder; damaged entries are dropped and compiled afresh; a copy of the folder at
@@ -119,7 +120,6 @@ def test_a_cache_that_cannot_be_used_is_one_note_at_the_end_and_never_before_an_
     assert err.count("\n") == 1 and err.startswith("coopjax: note: no compile cache"), err
 
 
-@pytest.mark.slow  # CI's time (13 s): the command line's cache is checked in real processes above
 def test_a_python_program_keeps_its_jitted_gradient_with_use_cache(tmp_path):
     """`coopjax.use_cache(folder)` in a script: the first run compiles its `jit(grad(...))` of a run
     (with the traced stability mark, the default under a trace) into the folder; a second run of the
