@@ -563,8 +563,12 @@ class ScreenSLP(Tuner):
             return
         first = min(best, key=lambda b: (not b.holds, b.value)).theta
         state.infeasible = not any(b.holds for b in best)
+        self._polish_from(state, first, state.seed + 2)
+
+    def _polish_from(self, state, theta, seed):
+        """The polish's CMA-ES from `theta` over the search box, the screen's batch its population."""
         lo, hi = state.problem.log_bounds()
-        state.polish_es = strategy(first, self.polish_sigma, lo, hi, state.seed + 2, self.local * self.radii)
+        state.polish_es = strategy(theta, self.polish_sigma, lo, hi, seed, self.local * self.radii)
         state.phase = "polish"
 
     def _tell_polish(self, state, query, ev):
@@ -586,7 +590,6 @@ class ScreenSLP(Tuner):
         if self.polish_again == 0:
             return None
         state = copy.deepcopy(state, {id(state.problem): state.problem})
-        lo, hi = state.problem.log_bounds()
         # Each added draw takes the place of the training draw nearest it (max norm in the box's unit
         # coordinates): the runs keep their shapes, so nothing is compiled again (a new shape cost
         # 40 s of compiling on two scenarios), and that region of the box stays covered.
@@ -598,8 +601,8 @@ class ScreenSLP(Tuner):
             state.draws[j] = d
             free.remove(j)
         state.best, state.lane, state.polished = [], [], Best()
-        state.polish_es = strategy(theta, self.polish_sigma, lo, hi, state.seed + 3, self.local * self.radii)
-        state.phase, state.generation, state.until = "polish", 0, self.polish_again
+        self._polish_from(state, theta, state.seed + 3)
+        state.generation, state.until = 0, self.polish_again
         return state
 
     def _tell_trials(self, state, query, ev):
