@@ -29,8 +29,9 @@ def cb2(x):
 
 
 class Analytic:
-    """An evaluator of the driver's shape: peak_m = CB2's f_m (three 'masses'), no lag, no shortfall,
-    and a grip margin min_swi_m = x1 - floor at every mass (1 when there is no floor)."""
+    """An evaluator of the driver's shape: peak_m = CB2's f_m (three 'masses'; a query with more
+    draws, as the polish's, sees them in turn again), no lag, no shortfall, and a grip margin
+    min_swi_m = x1 - floor at every mass (1 when there is no floor)."""
 
     compile_s = 0.0
 
@@ -45,11 +46,12 @@ class Analytic:
 
     def __call__(self, query):
         C, n = query.thetas.shape
-        M = 3
+        M, piece = len(query.draws), np.arange(len(query.draws)) % 3
         peak, J_peak = np.zeros((C, M)), np.zeros((C, M, n))
         swi, J_swi = np.ones((C, M)), np.zeros((C, M, n))
         for i, x in enumerate(query.thetas):
-            peak[i], J_peak[i] = cb2(x)
+            values, jac = cb2(x)
+            peak[i], J_peak[i] = values[piece], jac[piece]
             if self.floor is not None:
                 swi[i], J_swi[i, :, 0] = x[0] - self.floor, 1.0
         finite = np.ones(C, bool)
@@ -91,12 +93,14 @@ def test_the_local_solve_finds_the_minimax_optimum_where_three_pieces_are_active
     assert cb2(best)[0].max() == pytest.approx(CB2_MIN, abs=1e-6)
 
 
-def test_what_is_compiled_in_the_background_is_the_program_the_local_solves_ask_for():
+@pytest.mark.parametrize("finer", [1, 2])
+def test_what_is_compiled_in_the_background_is_the_program_the_local_solves_ask_for(finer):
     """The driver compiles the tuner's `later_queries` while the screen runs: each must have the kind
-    and shapes (the compiled program's key) of a query the run then asks."""
+    and shapes (the compiled program's key) of a query the run then asks (with a finer polish, its
+    shape too)."""
     evaluator, asked = Analytic(), []
     solve(
-        ScreenSLP(screen=6, local=2, steps=3),
+        ScreenSLP(screen=6, local=2, steps=3, polish_finer=finer),
         [[2.0, 2.0], [0.0, -1.0]],
         evaluator,
         on_step=lambda s, q, e: asked.append(q),
@@ -106,6 +110,7 @@ def test_what_is_compiled_in_the_background_is_the_program_the_local_solves_ask_
     later = {signature(q) for q in asked[1:]}
     assert all(signature(q) in later for q in evaluator.prepared)
     assert any(q.derivative == "jacobian" for q in evaluator.prepared)
+    assert len(evaluator.prepared) == finer  # the polish's program is the screen's unless its draws are finer
 
 
 def test_the_grip_margin_is_kept_exactly_as_an_independent_solver_keeps_it():
@@ -375,3 +380,65 @@ def test_going_on_polishes_from_the_answer_with_the_added_draw_and_meets_the_req
     (best,) = tuner.candidates(after.state)
     assert best[0] >= 0.5 - 1e-12
     assert np.abs(evaluator.queries[0].thetas - answer).max() < 2.0  # a polish near the answer, sigma 0.3
+
+
+class Between:
+    """An evaluator for any draws: the peak (x0 - 1)^2 at the training draws and (x0 + 1)^2 at every
+    other draw. On the training draws alone the best is x0 = 1; over a finer grid, x0 = 0."""
+
+    compile_s = 0.0
+
+    def __init__(self, trained):
+        self.trained, self.queries = np.asarray(trained, float).reshape(-1), []
+
+    def warm_up(self, query):
+        pass
+
+    def prepare(self, queries):
+        pass
+
+    def __call__(self, query):
+        self.queries.append(query)
+        x0 = query.thetas[:, :1]
+        mass = np.asarray(query.draws, float).reshape(-1)
+        at_training = np.isclose(mass[:, None], self.trained[None, :], rtol=1e-12).any(1)
+        peak = np.where(at_training, (x0 - 1.0) ** 2, (x0 + 1.0) ** 2)
+        jac = None
+        if query.derivative == "jacobian":  # along x0 alone
+            J = np.where(at_training, 2.0 * (x0 - 1.0), 2.0 * (x0 + 1.0))
+            J_peak = np.stack([J, np.zeros_like(J)], axis=-1)
+            jac = {
+                "parts": np.concatenate([J_peak, np.zeros_like(J_peak)], axis=1),
+                "c": np.zeros_like(J_peak),
+                "min_swi": np.zeros_like(J_peak),
+                "f": J_peak[:, 0],
+            }
+        zeros = np.zeros_like(peak)
+        return Evaluation(
+            f=peak.max(1),
+            c=zeros,
+            parts=np.concatenate([peak, zeros], axis=1),
+            valid=np.ones(len(x0), bool),
+            holds=np.ones(len(x0), bool),
+            min_swi=np.ones_like(peak),
+            jacobian=jac,
+        )
+
+
+@pytest.mark.parametrize("finer", [1, 2])
+def test_the_polish_trains_on_twice_the_draws_at_the_screens_runs_per_batch_and_so_does_not_overfit(finer):
+    """The local solves, on the training draws alone, end at x0 = 1, whose peak between those draws
+    is 4. The polish on twice the draws (a finer grid over the same widened box) finds x0 = 0, the
+    minimax over that grid (peak 1); with `polish_finer=1` it stays where the training draws put it.
+    Its population is cut so that a generation runs the screen batch's simulations."""
+    trained = PROBLEM.fixed_training_draws()
+    tuner = ScreenSLP(screen=0, local=2, steps=3, polish=30, polish_finer=finer)
+    evaluator = Between(trained)
+    result = solve(tuner, [[0.9, 0.0]], evaluator)
+    assert all(np.isclose(b.theta[0], 1.0, atol=0.05) for b in result.state.best if np.isfinite(b.value))
+    polish = evaluator.queries[-30:]
+    runs = tuner.local * tuner.radii * len(trained)
+    assert all(len(q.draws) == finer * len(trained) and len(q.thetas) * len(q.draws) == runs for q in polish)
+    assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish
+    x0 = result.state.polished.theta[0]
+    assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05

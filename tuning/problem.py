@@ -404,9 +404,10 @@ class Problem:
         """(M, p) training draws of one step, afresh per (seed, step) with `jitter`."""
         return design.training(self.uncertain, self.n_draws, self.margin, seed, step, self.jitter)
 
-    def fixed_training_draws(self) -> np.ndarray:
-        """(M, p) training draws for a tuner that keeps them for its whole run."""
-        return design.fixed_training(self.uncertain, self.n_draws, self.margin)
+    def fixed_training_draws(self, finer: int = 1) -> np.ndarray:
+        """(M, p) training draws for a tuner that keeps them for its whole run; `finer` times as many
+        (a finer grid, or as many more Sobol points) for a stage that must not overfit the draws."""
+        return design.fixed_training(self.uncertain, finer * self.n_draws, self.margin)
 
     def to_unit(self, draws) -> np.ndarray:
         """(M, p) draws in the box's unit coordinates (log coordinates for a loguniform parameter)."""
