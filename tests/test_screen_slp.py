@@ -426,7 +426,7 @@ class Between:
 
 
 @pytest.mark.parametrize("finer", [1, 2])
-def test_the_polish_trains_on_twice_the_draws_at_the_screens_runs_per_batch_and_so_does_not_overfit(finer):
+def test_a_polish_on_finer_draws_keeps_the_screens_runs_per_batch_and_does_not_overfit_the_training(finer):
     """The local solves, on the training draws alone, end at x0 = 1, whose peak between those draws
     is 4. The polish on twice the draws (a finer grid over the same widened box) finds x0 = 0, the
     minimax over that grid (peak 1); with `polish_finer=1` it stays where the training draws put it.

@@ -315,7 +315,7 @@ class ScreenSLP(Tuner):
     polish: int = setting(
         16,
         "CMA-ES generations that polish the best local solve on the problem's own merit (half the grip "
-        "margin), in batches of the screen's runs",
+        "margin), in batches of the screen's shape",
         "--polish",
     )
     # The polish's draws: `polish_finer` times the training draws, its population cut to keep the
