@@ -320,7 +320,7 @@ class ScreenSLP(Tuner):
     )
     # The polish's draws: `polish_finer` times the training draws, its population cut to keep the
     # screen's runs per batch. 2 helps where its best overfits the training draws (the default problem
-    # at seeds 1 and 3) but did worse on four problems of the suite (docs/tuning.md), so 1.
+    # at seeds 1 and 3) but did worse on five problems of the suite (docs/tuning.md), so 1.
     polish_finer: int = 1
     polish_sigma: float = 0.3  # the polish's initial step, log units
     polish_again: int = 8  # polish generations of a round that goes on with the judge's worst draws (`go_on`)
