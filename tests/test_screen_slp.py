@@ -316,9 +316,8 @@ def test_where_no_solve_holds_the_polish_minimises_the_judges_violation():
     assert np.argmin(polish_merit(tuner, ev, PROBLEM, M, infeasible=True)) == 0
 
 
-class Banded:
-    """An evaluator for any draws: the peak (x0 - log M_b)^2 at each, and the grip lost (by 10 N per
-    log unit of x0 below 0.5) only at the body mass 2 kg, a band between the training draws."""
+class Recording:
+    """An evaluator with nothing to compile that keeps the queries it was asked."""
 
     compile_s = 0.0
 
@@ -330,6 +329,11 @@ class Banded:
 
     def prepare(self, queries):
         pass
+
+
+class Banded(Recording):
+    """An evaluator for any draws: the peak (x0 - log M_b)^2 at each, and the grip lost (by 10 N per
+    log unit of x0 below 0.5) only at the body mass 2 kg, a band between the training draws."""
 
     def __call__(self, query):
         self.queries.append(query)
@@ -382,20 +386,13 @@ def test_going_on_polishes_from_the_answer_with_the_added_draw_and_meets_the_req
     assert np.abs(evaluator.queries[0].thetas - answer).max() < 2.0  # a polish near the answer, sigma 0.3
 
 
-class Between:
+class Between(Recording):
     """An evaluator for any draws: the peak (x0 - 1)^2 at the training draws and (x0 + 1)^2 at every
     other draw. On the training draws alone the best is x0 = 1; over a finer grid, x0 = 0."""
 
-    compile_s = 0.0
-
     def __init__(self, trained):
-        self.trained, self.queries = np.asarray(trained, float).reshape(-1), []
-
-    def warm_up(self, query):
-        pass
-
-    def prepare(self, queries):
-        pass
+        super().__init__()
+        self.trained = np.asarray(trained, float).reshape(-1)
 
     def __call__(self, query):
         self.queries.append(query)
