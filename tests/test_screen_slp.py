@@ -3,6 +3,7 @@ ask/tell interface, with an analytic evaluator: no simulation), the grip margin 
 screen's choice, resume by replay; and its exact Jacobians against central differences on the hard
 model, where the grip constraint is active and where it is not."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -36,7 +37,7 @@ class Analytic:
     compile_s = 0.0
 
     def __init__(self, floor=None, broken=()):
-        self.floor, self.broken, self.calls = floor, set(broken), 0
+        self.floor, self.broken, self.calls, self.queries = floor, set(broken), 0, []
 
     def warm_up(self, query):
         pass
@@ -45,6 +46,7 @@ class Analytic:
         self.prepared = list(queries)
 
     def __call__(self, query):
+        self.queries.append(query)
         C, n = query.thetas.shape
         M, piece = len(query.draws), np.arange(len(query.draws)) % 3
         peak, J_peak = np.zeros((C, M)), np.zeros((C, M, n))
@@ -439,3 +441,26 @@ def test_a_polish_on_finer_draws_keeps_the_screens_runs_per_batch_and_does_not_o
     assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish
     x0 = result.state.polished.theta[0]
     assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05
+
+
+def test_a_further_polish_goes_on_with_the_same_strategy_and_only_from_the_polishs_answer():
+    """`polish_further` from the polish's best: the next `polish` generations ask exactly what a run
+    with twice the polish would have asked (the strategy goes on, it does not restart), and its only
+    candidate is the polish's best, no worse on the training draws. From any other point (a local
+    solve's answer) nothing goes on."""
+    tuner, starts = ScreenSLP(screen=0, local=2, steps=2, polish=3), [[2.0, 2.0], [0.0, -1.0]]
+    before = solve(tuner, starts, Analytic())
+    longer = Analytic()
+    solve(dataclasses.replace(tuner, polish=6), starts, longer)
+    polished = before.state.polished.theta
+    assert tuner.polish_further(before.state, polished + 1e-3) is None  # not the polish's answer
+    state = tuner.polish_further(before.state, before.state.polished.theta)
+    further = Analytic()
+    after = solve(tuner, starts, further, state=state)
+    assert after.evaluations == 3
+    for ours, theirs in zip(further.queries, longer.queries[-3:]):
+        assert np.array_equal(ours.thetas, theirs.thetas) and np.array_equal(ours.draws, theirs.draws)
+    (best,) = tuner.candidates(after.state)
+    assert cb2(best)[0].max() <= cb2(polished)[0].max()
+    assert tuner.polish_further(after.state, best) is not None  # and it can go on again
+    assert dataclasses.replace(tuner, polish=0).polish_further(before.state, polished) is None

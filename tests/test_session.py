@@ -190,3 +190,24 @@ def test_an_answer_that_misses_goes_on_with_the_draws_where_it_misses_most():
     kept_new = [r["kept"] == "the new polish's best" for r in rounds]
     assert (after.params != before.params) == any(kept_new)
     assert "step_error" not in after.selection["validation"]  # selection runs no two-step check
+
+
+@pytest.mark.slow  # 30 s, most of it compiling; the polish's going on is tested in CI (test_screen_slp)
+def test_where_the_polishs_answer_is_chosen_the_polish_goes_on_while_it_wins_on_validation():
+    """With `further`, a chosen answer that is the polish's best is polished on, round by round,
+    and each round's best replaces it only where the validation draws prefer it; the rounds stop
+    at the first that loses, and without `further` there is none."""
+    tuner = TUNERS["screen-SLP"](screen=0, local=1, radii=2, steps=1, polish=4, jacobian="fd")
+    before = session.run(session.prepare(PROBLEM, tuner, dataclasses.replace(OPTIONS, further=0)))
+    assert before.selection["further"] == []
+    after = session.run(session.prepare(PROBLEM, tuner, dataclasses.replace(OPTIONS, further=2)))
+    rounds = after.selection["further"]
+    assert [r["kept"] for r in rounds] == ["the longer polish's best", "the answer before"]  # here: one won
+    assert after.result.evaluations == before.result.evaluations + tuner.polish * len(rounds)
+    kept = [r["kept"] == "the longer polish's best" for r in rounds]
+    assert all(kept[:-1])  # a round that loses is the last
+    for r, k in zip(rounds, kept):
+        if r.get("violation") == [0.0, 0.0]:  # both hold: the lower objective is kept
+            assert (r["objective"][1] < r["objective"][0]) == k
+    assert (after.params != before.params) == any(kept)
+    assert after.validation.objective <= before.validation.objective

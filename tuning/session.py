@@ -75,6 +75,14 @@ class Options:
         kind=int,
         check=lambda x: None if x >= 0 else "it must be 0 or more",
     )
+    further: int = setting(
+        3,
+        "rounds that go on polishing (screen-SLP: --polish more generations) while the answer chosen is the "
+        "polish's and each round's best beats it on the validation draws (0: none)",
+        "--further",
+        kind=int,
+        check=lambda x: None if x >= 0 else "it must be 0 or more",
+    )
     judge_dt: float = setting(
         JUDGE_DT,
         "step of the hard model for validation and judging",
@@ -346,11 +354,47 @@ def run(
         # Selection runs no two-step check: its fields are left out, not written as unmeasured.
         "validation": {k: x for k, x in v.row().items() if k not in ("step_error", "step_artefact")},
     }
+    selection["trade_off"] = trade_off(verdicts)
+    # Where the answer is the polish's, the polish goes on while each round's best beats it on the
+    # validation draws: a longer polish generalises on some problems and fits the training draws on
+    # others, and only the validation tells them apart.
+    selection["further"] = []
+    for _ in range(o.further):
+        theta = to_log(options[chosen], problem.names)
+        state = tuner.polish_further(result.state, theta)
+        if state is None:
+            break
+        log("the chosen answer is the polish's: the polish goes on ...")
+        more = driver.run(tuner, problem, session.base, theta[None], o.seed, state=state, progress=progress)
+        result = _added(result, more)._replace(state=more.state)
+        longer = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
+        if not longer or longer[0] == options[chosen]:
+            nothing = {"evaluations": more.evaluations, "kept": "nothing better on the training draws"}
+            selection["further"].append(nothing)
+            log("  the answer before stands (the longer polish found nothing better on its training draws)")
+            break
+        k, pair = select([options[chosen], longer[0]], draws, problem, session.base, o.judge_dt, check_step=False)
+        selection["further"].append(
+            {
+                "evaluations": more.evaluations,
+                "kept": "the longer polish's best" if k else "the answer before",
+                "violation": [pair[0].violation, pair[1].violation],
+                "objective": [pair[0].objective, pair[1].objective],
+            }
+        )
+        if k == 0:
+            longer_text = f"{_missing(pair[1])}; objective {pair[1].objective:.4g}"
+            log(f"  the answer before stands (the longer polish's: {longer_text})")
+            break
+        options.append(longer[0])
+        chosen, v = len(options) - 1, pair[1]
+        selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts + [pair[1]])
+        selection["validation"] = {key: x for key, x in v.row().items() if key not in ("step_error", "step_artefact")}
+        log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
     log(
         f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "
         f"{describe_draws(problem.uncertain, session.held_out)}, held out, x {len(problem.scenarios)} scenario(s) ..."
     )
-    selection["trade_off"] = trade_off(verdicts)
     start, start_trace = background.result() if background else (None, None)
     verdict, new = _judged(session, options[chosen], draws, log)
     # Where the answer misses a requirement at a draw the tuner never trained on (a narrow band of
@@ -373,12 +417,7 @@ def run(
             f"going on with {describe_draws(problem.uncertain, add)} in the training draws ..."
         )
         more = driver.run(tuner, problem, session.base, theta[None], o.seed, state=state, progress=progress)
-        result = result._replace(
-            elapsed=result.elapsed + more.elapsed,
-            compile_s=result.compile_s + more.compile_s,
-            trajectories=result.trajectories + more.trajectories,
-            evaluations=result.evaluations + more.evaluations,
-        )
+        result = _added(result, more)
         fresh = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
         pool = [options[chosen], *fresh]
         k, verdicts = select(pool, np.concatenate([draws, add]), problem, session.base, o.judge_dt, check_step=False)
@@ -401,6 +440,16 @@ def run(
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
         verdict, new = _judged(session, options[chosen], draws, log)
     return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
+
+
+def _added(result: driver.Result, more: driver.Result) -> driver.Result:
+    """`result`'s clock and counts with a run that went on from it (its record and state stay)."""
+    return result._replace(
+        elapsed=result.elapsed + more.elapsed,
+        compile_s=result.compile_s + more.compile_s,
+        trajectories=result.trajectories + more.trajectories,
+        evaluations=result.evaluations + more.evaluations,
+    )
 
 
 def _judged(session: Session, values: dict, validation, log) -> tuple[Verdict, np.ndarray]:

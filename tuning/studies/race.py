@@ -81,8 +81,9 @@ def run(
         tuned = {}
         for name in order:
             # No round that goes on from the judge's draws (`Options.again`): only screen-SLP has one,
-            # and its draws come from the judge, which the others never see.
-            options = dataclasses.replace(sessions[name].options, seed=seed, again=0)
+            # and its draws come from the judge, which the others never see. Nor a longer polish
+            # (`Options.further`): the race compares each tuner's recorded run.
+            options = dataclasses.replace(sessions[name].options, seed=seed, again=0, further=0)
             prepared = sessions[name]._replace(options=options)
             if name == reference:
                 limit = driver.Budget()

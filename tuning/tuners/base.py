@@ -135,6 +135,13 @@ class Tuner(abc.ABC):
         requirement there. None (the default): this tuner does not go on."""
         return None
 
+    def polish_further(self, state, theta: np.ndarray):
+        """A state from which the run's last phase goes on where `theta` (log parameters, the chosen
+        answer) is that phase's best, so that the selection on the validation draws can keep a longer
+        search's answer; its candidates are then the longer search's best alone. None (the default):
+        nothing goes on."""
+        return None
+
     def ends(self) -> bool:
         """Whether a run with these settings ends on its own (a plain run needs it); by default,
         `plain_run`."""
