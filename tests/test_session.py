@@ -21,11 +21,13 @@ from tuning.tuners import TUNERS, Evaluation
 
 # The smallest problem that still trains, selects and judges; random search for one block is the
 # cheapest tuner that ends on its own.
-PROBLEM = Problem(names=GAINS, n_draws=2, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False)
+PROBLEM = Problem(
+    names=GAINS, n_draws=2, n_validation=4, uncertain=(("M_b", "loguniform", 0.8, 4.5),), margin=0.0, jitter=False
+)
 OPTIONS = session.Options(starts=2, held_out=2, judge_dt=2e-3)
 SETTINGS = {"generations": 1}
 FLAGS = (
-    "--params gains --masses loguniform:0.8:4.5 --train-masses 2 --margin 0 --fixed-masses "
+    "--params gains --masses loguniform:0.8:4.5 --train-masses 2 --validation-draws 4 --margin 0 --fixed-masses "
     "--starts 2 --held-out 2 --judge-dt 2e-3 --method random-search --generations 1 --quiet"
 ).split()
 
@@ -198,9 +200,10 @@ def test_where_the_polishs_answer_is_chosen_the_polish_goes_on_while_it_wins_on_
     and each round's best replaces it only where the validation draws prefer it; the rounds stop
     at the first that loses, and without `further` there is none."""
     tuner = TUNERS["screen-SLP"](screen=0, local=1, radii=2, steps=1, polish=4, jacobian="fd")
-    before = session.run(session.prepare(PROBLEM, tuner, dataclasses.replace(OPTIONS, further=0)))
+    problem = dataclasses.replace(PROBLEM, n_validation=48)
+    before = session.run(session.prepare(problem, tuner, dataclasses.replace(OPTIONS, further=0)))
     assert before.selection["further"] == []
-    after = session.run(session.prepare(PROBLEM, tuner, dataclasses.replace(OPTIONS, further=2)))
+    after = session.run(session.prepare(problem, tuner, dataclasses.replace(OPTIONS, further=2)))
     rounds = after.selection["further"]
     assert [r["kept"] for r in rounds] == ["the longer polish's best", "the answer before"]  # here: one won
     assert after.result.evaluations == before.result.evaluations + tuner.polish * len(rounds)
