@@ -16,7 +16,7 @@ from coopjax.params import PARAMETERS, split_name
 from tuning.design import describe as describe_draws
 from tuning.plots import plot_history, plot_traces
 from tuning.problem import HOLD_TOLERANCE, Problem
-from tuning.session import Session, Tuned, ends, trace
+from tuning.session import LONGER, Session, Tuned, ends, trace
 
 EXIT_MISSED = 3  # the answer written misses a requirement on the held-out draws
 
@@ -164,11 +164,16 @@ def plots(session: Session, tuned: Tuned, files: dict, out: Outputs) -> None:
     """The history of the run and the grip traces of the start and the answer, written through `out`."""
     p, tuner = session.problem, session.tuner
     what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
+    plan = tuner.plan_text(len(p.names), session.options.starts)
+    further = tuned.selection.get("further", [])
+    if further:  # not in the figure's curves: the rounds after selection (`session.run`)
+        kept = sum(r["kept"] == LONGER for r in further)
+        plan += f"; after selection, {len(further)} more round(s) of polish, {kept} kept on the validation draws"
     plot_history(
         tuner.history(tuned.result.state),
         out.path(files["history"]),
         f"tuning {what} with {tuner.name} on the {p.switch} model (dt = {p.train_dt:g} s), "
-        f"{p.n_training} training draws\n" + textwrap.fill(tuner.plan_text(len(p.names), session.options.starts), 130),
+        f"{p.n_training} training draws\n" + textwrap.fill(plan, 130),
     )
     start_trace = tuned.start_trace if tuned.start_trace is not None else trace(session, session.first)
     runs = {"start (Table 1)": start_trace, "tuned": trace(session, tuned.params)}

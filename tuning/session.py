@@ -138,6 +138,8 @@ class Tuned(NamedTuple):
     start_trace: Any = None  # and its recorded run at the ends of the box (for figures)
 
 
+LONGER = "the longer polish's best"  # `selection.further`: a round whose best replaced the answer
+
 # Bytes one training run holds while a batch runs, per value it carries (its state and metric
 # accumulators, each with its tangents): a generous round figure, for refusing absurd sizes up front.
 RUN_BYTES = 8 * 4 * (20 + 40)
@@ -377,7 +379,7 @@ def run(
         selection["further"].append(
             {
                 "evaluations": more.evaluations,
-                "kept": "the longer polish's best" if k else "the answer before",
+                "kept": LONGER if k else "the answer before",
                 "violation": [pair[0].violation, pair[1].violation],
                 "objective": [pair[0].objective, pair[1].objective],
             }
