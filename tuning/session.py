@@ -295,7 +295,9 @@ def run(
     log: Callable[[str], None] = _quiet,
 ) -> Tuned:
     """Run a prepared session: the tuner through the driver, the selection among its candidates on
-    the validation draws, and the judge's verdict on the held-out draws; where the judge finds the
+    the validation draws (where the chosen one is the polish's, up to `options.further` rounds that
+    go on polishing while each round's best beats it there: `Tuner.polish_further`), and the
+    judge's verdict on the held-out draws; where the judge finds the
     answer missing a requirement worse than validation did, up to `options.again` rounds that go
     on from it with the draws where it misses most added to training (`Tuner.go_on`).
 
