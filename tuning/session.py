@@ -355,8 +355,7 @@ def run(
         "holding": held,
         "chosen": chosen,
         "validation_draws": {u.name: draws[:, i].tolist() for i, u in enumerate(problem.uncertain)},
-        # Selection runs no two-step check: its fields are left out, not written as unmeasured.
-        "validation": {k: x for k, x in v.row().items() if k not in ("step_error", "step_artefact")},
+        "validation": _validation_row(v),
     }
     selection["trade_off"] = trade_off(verdicts)
     # Where the answer is the polish's, the polish goes on while each round's best beats it on the
@@ -393,7 +392,7 @@ def run(
         options.append(longer[0])
         chosen, v = len(options) - 1, pair[1]
         selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts + [pair[1]])
-        selection["validation"] = {key: x for key, x in v.row().items() if key not in ("step_error", "step_artefact")}
+        selection["validation"] = _validation_row(v)
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
     log(
         f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "
@@ -440,10 +439,16 @@ def run(
         options.append(pool[k])
         chosen, v = len(options) - 1, verdicts[k]
         selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts)
-        selection["validation"] = {key: x for key, x in v.row().items() if key not in ("step_error", "step_artefact")}
+        selection["validation"] = _validation_row(v)
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
         verdict, new = _judged(session, options[chosen], draws, log)
     return Tuned(options[chosen], verdict, v, result, selection, start, start_trace)
+
+
+def _validation_row(v: Verdict) -> dict:
+    """A validation verdict as data. Selection runs no two-step check: its fields are left out, not
+    written as unmeasured."""
+    return {k: x for k, x in v.row().items() if k not in ("step_error", "step_artefact")}
 
 
 def _added(result: driver.Result, more: driver.Result) -> driver.Result:

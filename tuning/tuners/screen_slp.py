@@ -248,6 +248,11 @@ def diverse_best(thetas, phi, count, distance):
     return chosen
 
 
+def _copied(state: State) -> State:
+    """A deep copy of a state, sharing its problem (a state told is never changed: `Tuner`)."""
+    return copy.deepcopy(state, {id(state.problem): state.problem})
+
+
 def _outputs(ev) -> dict:
     out = {"parts": ev.parts, "c": ev.c, "swi": ev.min_swi}
     if ev.jacobian is not None:
@@ -457,7 +462,7 @@ class ScreenSLP(Tuner):
 
     def tell(self, state, query, ev):
         # The state told is never changed (`Tuner`): the next one starts as a copy (the problem shared).
-        state = copy.deepcopy(state, {id(state.problem): state.problem})
+        state = _copied(state)
         if state.phase == "screen only":
             return self._tell_more(state, query, ev)
         tell = {"screen": self._tell_screen, "jacobian": self._tell_jacobian, "trials": self._tell_trials}
@@ -602,7 +607,7 @@ class ScreenSLP(Tuner):
         The candidates are then the new polish's best alone."""
         if self.polish_again == 0:
             return None
-        state = copy.deepcopy(state, {id(state.problem): state.problem})
+        state = _copied(state)
         # Each added draw takes the place of the training draw nearest it (max norm in the box's unit
         # coordinates): the runs keep their shapes, so nothing is compiled again (a new shape cost
         # 40 s of compiling on two scenarios), and that region of the box stays covered.
@@ -626,7 +631,7 @@ class ScreenSLP(Tuner):
         p = state.polished.theta
         if self.polish == 0 or state.polish_es is None or p is None or not np.allclose(p, theta, rtol=0, atol=1e-9):
             return None
-        state = copy.deepcopy(state, {id(state.problem): state.problem})
+        state = _copied(state)
         state.best, state.lane = [], []
         state.phase, state.until = "polish", state.generation + self.polish
         return state
