@@ -443,6 +443,43 @@ def test_a_polish_on_finer_draws_keeps_the_screens_runs_per_batch_and_does_not_o
     assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05
 
 
+class MissedBetween(Between):
+    """`Between` with a requirement missed everywhere, by (peak + 1) / 10 relative to its bound: no
+    candidate holds, and the least violation is the minimax peak over the draws."""
+
+    def __call__(self, query):
+        ev = super().__call__(query)
+        peak = ev.parts[:, : len(query.draws)]
+        jac = ev.jacobian
+        if jac is not None:
+            jac = jac | {"c": jac["parts"][:, : len(query.draws)]}
+        return ev._replace(c=peak + 1.0, holds=np.zeros(len(peak), bool), miss=(peak + 1.0) / 10.0, jacobian=jac)
+
+
+@pytest.mark.parametrize("finer", [1, 2])
+def test_where_no_solve_holds_the_polish_minimises_the_violation_on_finer_draws_with_a_wide_step(finer):
+    """No candidate holds. The local solves, on the training draws alone, end at x0 = 1, whose miss
+    between those draws is 0.5. The feasibility polish runs on `feasibility_finer` times the draws at
+    the screen's population (so that many times its runs), from an initial step of
+    `feasibility_sigma`, and finds x0 = 0 (a miss of 0.2 over the finer grid); on the training draws
+    alone it stays at x0 = 1. A problem that holds keeps the plain polish (`test_a_polish_on_finer...`)."""
+    trained = PROBLEM.fixed_training_draws()
+    tuner = ScreenSLP(screen=0, local=2, steps=3, polish=30, feasibility_finer=finer)
+    evaluator, said = MissedBetween(trained), []
+    result = solve(tuner, [[0.9, 0.0]], evaluator, on_step=lambda *step: said.append(tuner.progress_text(*step)))
+    assert result.state.infeasible
+    (start,) = [text for text in said if text and "polish:" in text]  # said once, as it starts
+    assert f"of {tuner.local * tuner.radii} on {finer * len(trained)} training draws" in start
+    assert "minimises the judge's violation, from a step of 1 log units" in start
+    polish = evaluator.queries[-30:]
+    assert all(len(q.draws) == finer * len(trained) and len(q.thetas) == tuner.local * tuner.radii for q in polish)
+    assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish
+    spread = polish[0].thetas[:, 1].std()  # K_GI: no pull, so the first generation shows the step
+    assert 0.7 * tuner.feasibility_sigma < spread < 1.3 * tuner.feasibility_sigma
+    x0 = result.state.polished.theta[0]
+    assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05
+
+
 def test_a_further_polish_goes_on_with_the_same_strategy_and_only_from_the_polishs_answer():
     """`polish_further` from the polish's best: the next `polish` generations ask exactly what a run
     with twice the polish would have asked (the strategy goes on, it does not restart), and its only
