@@ -470,7 +470,7 @@ def test_where_no_solve_holds_the_polish_minimises_the_violation_on_finer_draws_
     assert result.state.infeasible
     (start,) = [text for text in said if text and "polish:" in text]  # said once, as it starts
     assert f"of {tuner.local * tuner.radii} on {finer * len(trained)} training draws" in start
-    assert "minimises the judge's violation, from a step of 1 log units" in start
+    assert "minimises the judge's violation, from an initial step of 1 in log units" in start
     polish = evaluator.queries[-30:]
     assert all(len(q.draws) == finer * len(trained) and len(q.thetas) == tuner.local * tuner.radii for q in polish)
     assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish

@@ -717,7 +717,7 @@ class ScreenSLP(Tuner):
             if state.infeasible:
                 polish += (
                     f"; no solve meets every requirement, so it minimises the judge's violation, "
-                    f"from a step of {self.feasibility_sigma:g} log units"
+                    f"from an initial step of {self.feasibility_sigma:g} in log units"
                 )
             text = polish if text is None else f"{text}\n{polish}"
         return text
