@@ -439,6 +439,7 @@ def test_a_polish_on_finer_draws_keeps_the_screens_runs_per_batch_and_does_not_o
     runs = tuner.local * tuner.radii * len(trained)
     assert all(len(q.draws) == finer * len(trained) and len(q.thetas) * len(q.draws) == runs for q in polish)
     assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish
+    assert tuner.run_text(result.state) is None  # a solve held: the plain polish
     x0 = result.state.polished.theta[0]
     assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05
 
@@ -471,6 +472,7 @@ def test_where_no_solve_holds_the_polish_minimises_the_violation_on_finer_draws_
     (start,) = [text for text in said if text and "polish:" in text]  # said once, as it starts
     assert f"of {tuner.local * tuner.radii} on {finer * len(trained)} training draws" in start
     assert "minimises the judge's violation, from an initial step of 1 in log units" in start
+    assert f"on {finer * len(trained)} training draws" in tuner.run_text(result.state)  # the history figure's title
     polish = evaluator.queries[-30:]
     assert all(len(q.draws) == finer * len(trained) and len(q.thetas) == tuner.local * tuner.radii for q in polish)
     assert len(evaluator.queries[-31].draws) == len(trained)  # the last one before the polish

@@ -165,6 +165,8 @@ def plots(session: Session, tuned: Tuned, files: dict, out: Outputs) -> None:
     p, tuner = session.problem, session.tuner
     what = ", ".join(p.names) if len(p.names) <= 4 else f"{len(p.names)} parameters"
     plan = tuner.plan_text(len(p.names), session.options.starts)
+    done = tuner.run_text(tuned.result.state)
+    plan += f"; {done}" if done else ""
     further = tuned.selection.get("further", [])
     if further:  # not in the figure's curves: the rounds after selection (`session.run`)
         kept = sum(r["kept"] == LONGER for r in further)

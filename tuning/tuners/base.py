@@ -161,6 +161,10 @@ class Tuner(abc.ABC):
         """A line after an evaluation (None: nothing to say)."""
         return None
 
+    def run_text(self, state) -> str | None:
+        """What the run did beyond its plan (`plan_text`), for the history figure (None: nothing)."""
+        return None
+
     def largest_batch(self, n_params: int, starts: int) -> tuple[int, str]:
         """The most candidates one query can hold, and the setting that sets it, as its flag and
         value (checked against the machine's memory before any work). By default, the starts."""

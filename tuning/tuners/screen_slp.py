@@ -722,6 +722,14 @@ class ScreenSLP(Tuner):
             text = polish if text is None else f"{text}\n{polish}"
         return text
 
+    def run_text(self, state):
+        if not state.infeasible:
+            return None
+        return (
+            f"no solve held, so the polish minimised the judge's violation on {len(state.draws)} training "
+            f"draws, from an initial step of {self.feasibility_sigma:g} in log units"
+        )
+
     def _progress_text(self, state, query):
         if state.phase == "jacobian" and query.derivative is None and state.screened and state.step == 0:
             s = state.screened
