@@ -35,8 +35,12 @@ def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> 
     to run instead of this one): (result, wall s, exit, stdout)."""
     start = time.perf_counter()
     env = os.environ | {"COOPJAX_CACHE": cache} | ({"PYTHONPATH": tool} if tool else {})
+    # In the tool's folder: `python -m` puts the working folder ahead of PYTHONPATH, so a run started
+    # from another checkout would import that one's code.
     done = subprocess.run(
-        [sys.executable, "-m", "coopjax.cli", "tune", "--problem", path, "--out", out, *extra],
+        [sys.executable, "-m", "coopjax.cli", "tune", "--problem", os.path.abspath(path)]
+        + ["--out", os.path.abspath(out), *extra],
+        cwd=tool,
         env=env,
         capture_output=True,
         text=True,
