@@ -482,6 +482,34 @@ def test_where_no_solve_holds_the_polish_minimises_the_violation_on_finer_draws_
     assert abs(x0 - (0.0 if finer == 2 else 1.0)) < 0.05
 
 
+def test_a_polish_afresh_starts_a_new_strategy_from_the_answer_with_the_first_steps_reach():
+    """`polish_afresh` (for a round at a finer step, `session.run`): `polish` generations of a new
+    strategy centred on the given answer, whose first generation spreads by the polish's initial step
+    (the feasibility polish's where no solve held), not by the shrunken step the polish ended with;
+    its candidates are that round's best alone."""
+    trained = PROBLEM.fixed_training_draws()
+    tuner = ScreenSLP(screen=0, local=2, steps=3, polish=20)
+    before = solve(tuner, [[0.9, 0.0]], MissedBetween(trained))
+    assert before.state.infeasible
+    answer = before.state.polished.theta
+    ended = Analytic()
+    solve(tuner, [[0.9, 0.0]], ended, state=tuner.polish_further(before.state, answer))
+    state = tuner.polish_afresh(before.state, answer)
+    assert state.generation == 0 and state.polished.theta is None and before.state.polished.theta is answer
+    again = MissedBetween(trained)
+    after = solve(tuner, [[0.9, 0.0]], again, state=state)
+    assert after.evaluations == tuner.polish
+    first = again.queries[0].thetas
+    assert np.allclose(first.mean(0), answer, atol=0.6)  # centred on the answer
+    # K_GI (no pull): the new strategy's first spread is the feasibility step, far above where the
+    # old one had shrunk to.
+    assert 0.6 * tuner.feasibility_sigma < first[:, 1].std() < 1.4 * tuner.feasibility_sigma
+    assert first[:, 1].std() > 3 * ended.queries[0].thetas[:, 1].std()
+    (best,) = tuner.candidates(after.state)
+    assert np.array_equal(best, after.state.polished.theta)
+    assert dataclasses.replace(tuner, polish=0).polish_afresh(before.state, answer) is None
+
+
 def test_a_further_polish_goes_on_with_the_same_strategy_and_only_from_the_polishs_answer():
     """`polish_further` from the polish's best: the next `polish` generations ask exactly what a run
     with twice the polish would have asked (the strategy goes on, it does not restart), and its only

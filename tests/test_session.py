@@ -13,7 +13,7 @@ import pytest
 import tuning
 from coopjax import cli
 from coopjax.errors import InputError
-from tuning import session
+from tuning import driver, session
 from tuning.judging import missed_at
 from tuning.problem import GAINS, Problem, Requirement
 from tuning.studies import pareto, race
@@ -168,6 +168,39 @@ def test_the_pareto_study_gives_a_tuner_that_ends_only_by_a_budget_the_plans_tim
     result = pareto.run({"random search": prepared, "CMA-ES": others}, "random search", weights, log=lambda s: None)
     front = [(r["tuner"], r["weight"]) for r in result["pareto"] if r["kind"] == "front"]
     assert front == [(t, w) for w in weights for t in ("random search", "CMA-ES")]
+
+
+@pytest.mark.slow  # 40 s, most of it compiling a program per step; `polish_afresh` is tested in CI (test_screen_slp)
+def test_where_no_answer_holds_and_it_sits_on_the_steps_limit_a_new_polish_runs_at_half_the_step(monkeypatch):
+    """A peak bound no gain set meets. Where the chosen answer's loop sits on the training step's
+    limit (`step_edge`, made 1 here), rounds of a new polish run at half the step, then a quarter,
+    each trained at that step, while each round's best wins on validation; an answer off the limit,
+    or `halvings=0`, runs none."""
+    problem = dataclasses.replace(PROBLEM, require=PROBLEM.require + (Requirement("peak_grip", "at_most", 1.0),))
+    tuner = TUNERS["screen-SLP"](screen=0, local=1, radii=2, steps=1, polish=2, jacobian="fd")
+    options = dataclasses.replace(OPTIONS, further=0, again=0, halvings=2)
+    trained_at, run = [], driver.run
+
+    def recorded(tuner, trained, *args, **kwargs):
+        trained_at.append(trained.train_dt)
+        return run(tuner, trained, *args, **kwargs)
+
+    monkeypatch.setattr(driver, "run", recorded)
+    monkeypatch.setattr(session, "step_edge", lambda *args: 2.0)
+    off = session.run(session.prepare(problem, tuner, options))
+    assert off.selection["finer"] == [] and trained_at == [problem.train_dt]
+    monkeypatch.setattr(session, "step_edge", lambda *args: 1.0)
+    none = session.run(session.prepare(problem, tuner, dataclasses.replace(options, halvings=0)))
+    assert none.selection["finer"] == [] and none.params == off.params
+    trained_at.clear()
+    on = session.run(session.prepare(problem, tuner, options))
+    rounds = on.selection["finer"]
+    assert not on.validation.holds and 1 <= len(rounds) <= 2
+    assert [r["dt"] for r in rounds] == [problem.train_dt / 2, problem.train_dt / 4][: len(rounds)]
+    assert trained_at == [problem.train_dt] + [r["dt"] for r in rounds]  # each round trained at its step
+    kept = [r["kept"] == session.LONGER for r in rounds]
+    assert all(kept[:-1]) and (on.params != off.params) == any(kept)
+    assert on.validation.violation <= off.validation.violation
 
 
 @pytest.mark.slow  # 30 s, most of it compiling; the round's parts are tested in CI (test_screen_slp, test_judging)

@@ -42,7 +42,7 @@ def tune(
       budget: when a tuner that has no end of its own (CMA-ES, random search) stops.
       progress: a progress bar on stderr.
       options: a `tuning.Options`; or give its fields as keywords: `seed`, `starts`, `spread`,
-        `held_out`, `again`, `further`, `judge_dt`.
+        `held_out`, `again`, `further`, `halvings`, `judge_dt`.
       **settings: the session's options (above), then the tuner's settings (its dataclass fields,
         e.g. `steps=4`).
 

@@ -171,6 +171,13 @@ def plots(session: Session, tuned: Tuned, files: dict, out: Outputs) -> None:
     if further:  # not in the figure's curves: the rounds after selection (`session.run`)
         kept = sum(r["kept"] == LONGER for r in further)
         plan += f"; after selection, {len(further)} more round(s) of polish, {kept} kept on the validation draws"
+    finer = tuned.selection.get("finer", [])
+    if finer:  # the answer sat on the training step's stability limit (`session.run`)
+        kept = sum(r["kept"] == LONGER for r in finer)
+        plan += (
+            f"; then {len(finer)} round(s) of a new polish at half the step each (down to {finer[-1]['dt']:g} s), "
+            f"{kept} kept on the validation draws"
+        )
     plot_history(
         tuner.history(tuned.result.state),
         out.path(files["history"]),

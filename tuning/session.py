@@ -29,7 +29,7 @@ from tuning import driver
 from tuning.design import describe as describe_draws
 from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, missed_at, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
-from tuning.training import measurable_step, starting_points
+from tuning.training import EDGE, measurable_step, starting_points, step_edge
 from tuning.tuners import Tuner
 
 
@@ -80,6 +80,15 @@ class Options:
         "rounds that go on polishing (screen-SLP: --polish more generations) while the answer chosen is the "
         "polish's and each round's best beats it on the validation draws (0: none)",
         "--further",
+        kind=int,
+        check=lambda x: None if x >= 0 else "it must be 0 or more",
+    )
+    halvings: int = setting(
+        3,
+        "rounds that go on polishing at half the training step, each, where no answer meets every requirement and "
+        "the chosen one's loop sits on the training step's stability limit, while each round's best beats it on "
+        "the validation draws (0: none)",
+        "--halvings",
         kind=int,
         check=lambda x: None if x >= 0 else "it must be 0 or more",
     )
@@ -296,7 +305,9 @@ def run(
 ) -> Tuned:
     """Run a prepared session: the tuner through the driver, the selection among its candidates on
     the validation draws (where the chosen one is the polish's, up to `options.further` rounds that
-    go on polishing while each round's best beats it there: `Tuner.polish_further`), and the
+    go on polishing while each round's best beats it there: `Tuner.polish_further`; where no
+    candidate holds and the chosen one sits on the training step's stability limit, up to
+    `options.halvings` rounds of a new polish at half the step each: `Tuner.polish_afresh`), and the
     judge's verdict on the held-out draws; where the judge finds the
     answer missing a requirement worse than validation did, up to `options.again` rounds that go
     on from it with the draws where it misses most added to training (`Tuner.go_on`).
@@ -358,42 +369,74 @@ def run(
         "validation": _validation_row(v),
     }
     selection["trade_off"] = trade_off(verdicts)
+
     # Where the answer is the polish's, the polish goes on while each round's best beats it on the
     # validation draws: a longer polish generalises on some problems and fits the training draws on
     # others, and only the validation tells them apart.
-    selection["further"] = []
-    for _ in range(o.further):
+    def polish_on(trained: Problem, text: str, afresh: bool = False) -> dict | None:
+        """One round that goes on polishing the chosen answer (`afresh`: a new polish from it),
+        trained on `trained`: its record in `selection`, with "kept" LONGER where its best replaced
+        the answer (None: nothing goes on)."""
+        nonlocal result, chosen, v
         theta = to_log(options[chosen], problem.names)
-        state = tuner.polish_further(result.state, theta)
+        state = (tuner.polish_afresh if afresh else tuner.polish_further)(result.state, theta)
         if state is None:
-            break
-        log("the chosen answer is the polish's: the polish goes on ...")
-        more = driver.run(tuner, problem, session.base, theta[None], o.seed, state=state, progress=progress)
+            return None
+        log(text)
+        more = driver.run(tuner, trained, session.base, theta[None], o.seed, state=state, progress=progress)
         result = _added(result, more)._replace(state=more.state)
         longer = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
         if not longer or longer[0] == options[chosen]:
-            nothing = {"evaluations": more.evaluations, "kept": "nothing better on the training draws"}
-            selection["further"].append(nothing)
             log("  the answer before stands (the longer polish found nothing better on its training draws)")
-            break
+            return {"evaluations": more.evaluations, "kept": "nothing better on the training draws"}
         k, pair = select([options[chosen], longer[0]], draws, problem, session.base, o.judge_dt, check_step=False)
-        selection["further"].append(
-            {
-                "evaluations": more.evaluations,
-                "kept": LONGER if k else "the answer before",
-                "violation": [pair[0].violation, pair[1].violation],
-                "objective": [pair[0].objective, pair[1].objective],
-            }
-        )
+        record = {
+            "evaluations": more.evaluations,
+            "kept": LONGER if k else "the answer before",
+            "violation": [pair[0].violation, pair[1].violation],
+            "objective": [pair[0].objective, pair[1].objective],
+        }
         if k == 0:
             longer_text = f"{_missing(pair[1])}; objective {pair[1].objective:.4g}"
             log(f"  the answer before stands (the longer polish's: {longer_text})")
-            break
+            return record
         options.append(longer[0])
         chosen, v = len(options) - 1, pair[1]
         selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts + [pair[1]])
         selection["validation"] = _validation_row(v)
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
+        return record
+
+    selection["further"] = []
+    for _ in range(o.further):
+        record = polish_on(problem, "the chosen answer is the polish's: the polish goes on ...")
+        if record is not None:
+            selection["further"].append(record)
+        if record is None or record["kept"] != LONGER:
+            break
+    # Where no answer meets every requirement and the chosen one's loop sits on the training step's
+    # stability limit, the search pressed against what that step can measure (`step_edge`): a new
+    # polish from it runs at half the step (`Tuner.polish_afresh`), then at half that, while each
+    # round's best beats the answer on the validation draws and sits on the new step's limit again.
+    # Later rounds (`again`) train at the step reached.
+    trained = problem
+    selection["finer"] = []
+    for _ in range(o.halvings):
+        edge = step_edge(trained, session.base, options[chosen])
+        if v.holds or edge > EDGE:
+            break
+        limit = edge * trained.train_dt
+        trained = dataclasses.replace(trained, dt=trained.train_dt / 2)
+        record = polish_on(
+            trained,
+            f"no answer meets every requirement, and the chosen one's loop needs a step of {limit:.3g} s at a "
+            f"training draw, the training step's limit: a new polish from it at {trained.train_dt:g} s ...",
+            afresh=True,
+        )
+        if record is not None:
+            selection["finer"].append({**record, "dt": trained.train_dt})
+        if record is None or record["kept"] != LONGER:
+            break
     log(
         f"judging with the hard model (filippov), float64, dt = {o.judge_dt:g} s, on "
         f"{describe_draws(problem.uncertain, session.held_out)}, held out, x {len(problem.scenarios)} scenario(s) ..."
@@ -419,7 +462,7 @@ def run(
             f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}: "
             f"going on with {describe_draws(problem.uncertain, add)} in the training draws ..."
         )
-        more = driver.run(tuner, problem, session.base, theta[None], o.seed, state=state, progress=progress)
+        more = driver.run(tuner, trained, session.base, theta[None], o.seed, state=state, progress=progress)
         result = _added(result, more)
         fresh = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
         pool = [options[chosen], *fresh]

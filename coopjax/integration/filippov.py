@@ -621,15 +621,20 @@ def step(params, y, t, dt, scenario, options):
     The path (each piece's plan and cut, and whether it runs) is named `DECISIONS`, so that reverse
     mode keeps it from the forward pass instead of recomputing it (`base.DECISIONS`).
     """
-    rows = Rows.of(y)
+    rows, signals, path = step_rows(params, Rows.of(y), t, dt, scenario, options)
+    return rows.array(), signals, path
+
+
+def step_rows(params, rows: Rows, t, dt, scenario, options):
+    """`step` on the state as `Rows`."""
     ps = model.robots(params)
     clock = Clock.at(t)
-    false = jnp.zeros(y.shape[1:], bool)
     # Made to depend on the state (by adding a zero that does), so that under differentiation the
     # pieces' loop sees tangents in its whole carry from the start (as `loop.integrate` does for the
     # time loop): otherwise reverse mode processed the pieces' body again until they settled, and
     # tracing `grad` took 11 s.
-    remaining = dt + 0.0 * y[0]
+    remaining = dt + 0.0 * rows.robots[0]["x_r"]
+    false = jnp.zeros(remaining.shape, bool)
 
     def run(carry: Progress, j):
         last = j == PIECES - 1
@@ -699,11 +704,11 @@ def step(params, y, t, dt, scenario, options):
         return jax.lax.cond(decided((carry.remaining > 0.0).any()), run, skip, carry, j)
 
     signals0 = model.Aux(*(jnp.stack([0.0 * remaining] * 2) for _ in model.Aux._fields))
-    free_switch = jnp.full(y.shape[1:], Switch.FREE)
+    free_switch = jnp.full(remaining.shape, Switch.FREE)
     F0 = forces(touches(ps, rows, options))
     start = Progress(rows, remaining, 0.0 * remaining, (false, false), (free_switch, free_switch), F0, signals0)
     end, (h, starts, ends, surface, impact) = jax.lax.scan(piece, start, jnp.arange(PIECES))
-    return end.rows.array(), end.signals, Path(h / dt, starts, ends, surface, impact)
+    return end.rows, end.signals, Path(h / dt, starts, ends, surface, impact)
 
 
 def observe(params, y, t, dt, scenario, options) -> model.Aux:

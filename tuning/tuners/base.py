@@ -142,6 +142,12 @@ class Tuner(abc.ABC):
         nothing goes on."""
         return None
 
+    def polish_afresh(self, state, theta: np.ndarray):
+        """A state from which the run's last phase starts again from `theta` (log parameters, the
+        chosen answer), with its first step's reach, for a round trained at a finer step; its
+        candidates are then that round's best alone. None (the default): nothing goes on."""
+        return None
+
     def ends(self) -> bool:
         """Whether a run with these settings ends on its own (a plain run needs it); by default,
         `plain_run`."""
