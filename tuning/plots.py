@@ -59,6 +59,10 @@ def plot_history(history: dict, path: str, title: str) -> None:
         b.set_ylim(-0.05, 1.05)
         b.set_title("the grip constraint: 0 once the grip is lost", fontsize=10)
         b.legend(fontsize=8)
+        if not np.isfinite(right).any():  # NaN without a grip requirement at F_lim: say so, not an empty axis
+            b.set_xlim(steps.min(), steps.max())
+            text = "no grip margin to show: the problem requires no grip at F_lim\n(or no lane's runs were measured)"
+            b.text(0.5, 0.5, text, ha="center", va="center", transform=b.transAxes, fontsize=10, color="0.3")
     else:
         a.set_ylabel("objective f (training aggregates) [N]")
         a.set_title("objective per start (dots: meets every requirement at every training draw)", fontsize=10)
