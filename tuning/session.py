@@ -27,7 +27,7 @@ from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
-from tuning.judging import JUDGE_DT, Verdict, judge, judge_config, missed_at, preferred, select, worst_case
+from tuning.judging import JUDGE_DT, REFINE, Verdict, judge, judge_config, missed_at, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
 from tuning.training import EDGE, measurable_step, starting_points, step_edge
 from tuning.tuners import Tuner
@@ -84,10 +84,10 @@ class Options:
         check=lambda x: None if x >= 0 else "it must be 0 or more",
     )
     halvings: int = setting(
-        3,
+        4,
         "rounds that go on polishing at half the training step, each, where no answer meets every requirement and "
         "the chosen one's loop sits on the training step's stability limit, while each round's best beats it on "
-        "the validation draws (0: none)",
+        "the validation draws, and never below the finest step the judge refines to (0: none)",
         "--halvings",
         kind=int,
         check=lambda x: None if x >= 0 else "it must be 0 or more",
@@ -423,7 +423,8 @@ def run(
     selection["finer"] = []
     for _ in range(o.halvings):
         edge = step_edge(trained, session.base, options[chosen])
-        if v.holds or edge > EDGE:
+        # Below the judge's finest refinement, a trained answer's values could not be judged.
+        if v.holds or edge > EDGE or trained.train_dt / 2 < o.judge_dt / 2**REFINE * (1 - 1e-9):
             break
         limit = edge * trained.train_dt
         trained = dataclasses.replace(trained, dt=trained.train_dt / 2)
