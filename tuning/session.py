@@ -422,9 +422,11 @@ def run(
     trained = problem
     selection["finer"] = []
     for _ in range(o.halvings):
-        edge = step_edge(trained, session.base, options[chosen])
         # Below the judge's finest refinement, a trained answer's values could not be judged.
-        if v.holds or edge > EDGE or trained.train_dt / 2 < o.judge_dt / 2**REFINE * (1 - 1e-9):
+        if v.holds or trained.train_dt / 2 < o.judge_dt / 2**REFINE * (1 - 1e-9):
+            break
+        edge = step_edge(trained, session.base, options[chosen])
+        if edge > EDGE:
             break
         limit = edge * trained.train_dt
         trained = dataclasses.replace(trained, dt=trained.train_dt / 2)
