@@ -194,6 +194,14 @@ LEAST_MEASURED = 0.1  # the share of the starts' box that must be measured at th
 PROBES = 128  # Sobol points of the starts' box whose linearised loops decide the step
 
 
+def least_limit(problem: Problem, base: Params, thetas, draws) -> np.ndarray:
+    """(K,) per candidate (log parameters), the smallest stability limit of its linearised loop over
+    the draws and the problem's scenarios, s."""
+    params = params_for(base, problem, jnp.asarray(thetas), draws)
+    limit = np.min([np.asarray(stable_dt(params, c)[0]) for c in problem.configs], axis=0)
+    return limit.reshape(len(thetas), len(draws)).min(1)
+
+
 def measurable_step(
     problem: Problem, base: Params, first: dict[str, float], spread: float
 ) -> tuple[Problem, str | None]:
@@ -215,10 +223,7 @@ def measurable_step(
     start = np.clip(to_log(first, problem.names), lo, hi)
     a, b = problem.log_box_around(start, spread)
     probes = np.concatenate([start[None], a + (b - a) * qmc.Sobol(len(a), seed=0).random(PROBES)])
-    draws = problem.fixed_training_draws()
-    params = params_for(base, problem, jnp.asarray(probes), draws)
-    limit = np.min([np.asarray(stable_dt(params, c)[0]) for c in problem.configs], axis=0)
-    limit = limit.reshape(len(probes), len(draws)).min(1)
+    limit = least_limit(problem, base, probes, problem.fixed_training_draws())
     dt, halvings = problem.train_dt, 0
     while (limit >= dt / 2**halvings).mean() < LEAST_MEASURED and halvings < MAX_HALVINGS:
         halvings += 1
@@ -242,10 +247,8 @@ def step_edge(problem: Problem, base: Params, values: dict[str, float]) -> float
     against what the training step can measure. On the paper's squeeze with the grip held and the
     peak bounded, the answer trained at 1 ms sat at 1.00, and trained at 0.25 ms and 0.125 ms at 1.00
     again, its peak 21.9 and 16.4 N against 35.5 N."""
-    theta = jnp.asarray(np.clip(to_log(values, problem.names), *problem.log_bounds()))[None]
-    params = params_for(problem.base(base), problem, theta, problem.fixed_training_draws())
-    limit = min(float(np.min(np.asarray(stable_dt(params, c)[0]))) for c in problem.configs)
-    return limit / problem.train_dt
+    theta = np.clip(to_log(values, problem.names), *problem.log_bounds())[None]
+    return float(least_limit(problem, problem.base(base), theta, problem.fixed_training_draws())[0]) / problem.train_dt
 
 
 def starting_points(
