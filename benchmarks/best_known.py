@@ -7,7 +7,9 @@ judged again on a fresh dense design at dt and dt/2.
 
 A best-known answer is the best this search found, a bound on what can be reached, not a proof of
 the optimum. The answers go to benchmarks/problems/best_known.json (merged: other problems' entries
-are kept), each with how it was found.
+are kept), each with how it was found. A problem's recorded answer is judged again with the search's
+best ones, and stays where the search found nothing better (its entry then says so). Searches of
+different problems can run at the same time (the file is locked while it is rewritten).
 
 The merit is lexicographic in effect: 1e4 per unit of `Verdict.unmeasured` (a run that diverged or
 could not be run), then 1e3 per unit of the worst relative violation of a requirement, then the
@@ -18,6 +20,7 @@ infeasible one it finds the least violation.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
 import time
@@ -40,7 +43,9 @@ def merit(v) -> float:
     return 1e4 * v.unmeasured + 1e3 * v.violation + objective
 
 
-def search(problem, minutes: float, seeds: int, known: list[dict] = (), log=print) -> dict:
+def search(
+    problem, minutes: float, seeds: int, known: list[dict] = (), recorded: dict | None = None, log=print
+) -> dict:
     import cma
 
     from tuning import design
@@ -100,7 +105,9 @@ def search(problem, minutes: float, seeds: int, known: list[dict] = (), log=prin
         if len(kept) == KEEP:
             break
     kept += [np.clip(to_log(k, problem.names), lo, hi) for k in known]
-    entry = final(problem, [_values(problem, x) for x in kept])
+    # The recorded best known is judged with them: a shorter search or an earlier answer can be better.
+    candidates = [_values(problem, x) for x in kept] + ([recorded["params"]] if recorded else [])
+    entry = final(problem, candidates)
     entry["search"] = {
         "method": "CMA-ES with IPOP restarts (cma), merit 1e4 x unmeasured + 1e3 x relative violation + objective",
         "minutes": minutes,
@@ -115,6 +122,11 @@ def search(problem, minutes: float, seeds: int, known: list[dict] = (), log=prin
         "judged_dt": [1e-3, 5e-4],
         "found_by": "search" if entry["index"] < len(kept) - len(known) else "an answer given (--starts-from)",
     }
+    if entry["index"] == len(kept):  # the recorded one stays: this search found nothing better
+        old = recorded.get("search", {})
+        entry["search"]["found_by"] = (
+            f"the recorded best known, not beaten by this search ({old.get('found_by', 'search')})"
+        )
     entry.pop("index")
     return entry
 
@@ -147,12 +159,15 @@ def _values(problem, x) -> dict:
 
 
 def save(name: str, entry: dict) -> None:
-    """Write one problem's entry into best_known.json (atomically; other problems' entries kept)."""
-    known = json.load(open(OUT)) if os.path.exists(OUT) else {}
-    known[name] = entry
-    with open(OUT + ".tmp", "w") as f:
-        json.dump(known, f, indent=1, sort_keys=True)
-    os.replace(OUT + ".tmp", OUT)
+    """Write one problem's entry into best_known.json (atomically; other problems' entries kept, also
+    those that searches running at the same time write: the file is locked while it is rewritten)."""
+    with open(OUT + ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        known = json.load(open(OUT)) if os.path.exists(OUT) else {}
+        known[name] = entry
+        with open(OUT + ".tmp", "w") as f:
+            json.dump(known, f, indent=1, sort_keys=True)
+        os.replace(OUT + ".tmp", OUT)
 
 
 def merge(paths: list[str], folders: list[str]) -> int:
@@ -213,7 +228,8 @@ def main(argv=None) -> int:
         known = []
         if args.starts_from and os.path.exists(os.path.join(args.starts_from, name + ".json")):
             known = [json.load(open(os.path.join(args.starts_from, name + ".json")))["params"]]
-        entry = search(Problem.from_toml(path), args.minutes, args.seeds, known)
+        recorded = json.load(open(OUT)).get(name) if os.path.exists(OUT) else None
+        entry = search(Problem.from_toml(path), args.minutes, args.seeds, known, recorded)
         entry["search"]["wall_s"] = round(time.perf_counter() - start, 1)
         save(name, entry)
         state = (
