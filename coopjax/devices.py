@@ -157,6 +157,7 @@ def run(
     fixed_block: bool = False,
     shard_traced: bool = False,
     devices: int | None = None,
+    compile_only: bool = False,
 ):
     """`fn(params)` on a batch of parameter sets (the last axis of every leaf), over the local devices.
 
@@ -175,7 +176,9 @@ def run(
       than `block` is cut into equal slabs of at most `block`, as on several devices.
 
     `fn` must be hashable (it keys the cache of compiled programs) and map a batch to a pytree
-    whose leaves, where `batched(out)` says so, carry the batch as their last axis.
+    whose leaves, where `batched(out)` says so, carry the batch as their last axis. With
+    `compile_only`, a concrete batch's program is compiled (`compiled`), nothing runs, and None is
+    returned.
     """
     leaves, tree = jax.tree_util.tree_flatten(params)
     shape = np.shape(leaves[0])[-1:] if leaves and np.ndim(leaves[0]) else ()
@@ -193,6 +196,9 @@ def run(
     ordered = batch_order(params) if batch_order is not None and shape else None
     slabs = ordered is not None
     if not shape or (n == 1 and not fixed_block and (size <= block or not slabs)):
+        if compile_only:
+            compiled(_compiled(fn, 1, batched, False), params)
+            return None
         return _compiled(fn, 1, batched, False)(params)
     if fixed_block or (n > 1 and size > n * block):
         slab = n * block
@@ -212,10 +218,12 @@ def run(
         place(jax.tree_util.tree_unflatten(tree, [x[..., s : s + slab] for x in host]))
         for s in range(0, size + pad, slab)
     ]
+    executable = compiled(program, parts_in[0])  # outside the lock: another thread's programs may run meanwhile
+    if compile_only:
+        return None
     if n == 1:
-        parts = [program(x) for x in parts_in]
+        parts = [executable(x) for x in parts_in]
     else:
-        executable = compiled(program, parts_in[0])  # outside the lock: another thread's programs may run meanwhile
         with EXCLUSIVE:
             parts = jax.block_until_ready([executable(x) for x in parts_in])
     out = _joined(jax.device_get(parts), size, batched)
@@ -249,13 +257,16 @@ _COMPILING = threading.Lock()
 MAX_EXECUTABLES = 256
 
 
+def _signature(args) -> tuple:
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
+
+
 def compiled(program, *args, key=None):
     """`program` (a jitted function) compiled ahead of time for these arguments' shapes, dtypes and
     shardings, once per process, whichever thread asks first. `key` names the program (default: the
     function object itself), for callers whose programs are rebuilt from a description."""
-    leaves, tree = jax.tree_util.tree_flatten(args)
-    signature = (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
-    key = (program if key is None else key, *signature)
+    key = (program if key is None else key, *_signature(args))
     with _COMPILING:
         future, mine = _EXECUTABLES.get(key), False
         if future is None:

@@ -14,8 +14,10 @@ import math
 import jax
 import numpy as np
 
-from coopjax import devices, stability, step_check
+from coopjax import devices, scenarios, stability, step_check
 from coopjax.config import Config
+from coopjax.integration import INTEGRATORS
+from coopjax.objectives import on_grid
 from coopjax.params import Params
 from coopjax.simulation import MetricsRefined, metrics_of, refinable
 from coopjax.status import LABELS, Status
@@ -110,21 +112,56 @@ def evaluate(
     return {name: out[name] for name in columns(config, check_step, refine)}
 
 
-def _runs(params: Params, config: Config, check_step: bool, block: int, r: int = 1, shared: bool = False) -> dict:
+def shared_runs(params: Params, config: Config, block: int, compile_only: bool = False) -> dict | None:
+    """The metrics of every sample at config.dt, unchecked, in the program `evaluate` with `shared`
+    runs: a caller that also judges (the tuner, whose training runs at a step of the judge's grid,
+    `grid`) compiles one program for both. With `compile_only`, the program is compiled and nothing
+    runs (None)."""
+    if not shares_program(config):
+        raise ValueError(f"{config.method} at dt = {config.dt} shares no program (shares_program)")
+    return _runs(config.cast(params), config, False, block, shared=True, compile_only=compile_only)
+
+
+def grid(config: Config) -> tuple[float, int]:
+    """(the grid step, r): the shared program's grid, and the substeps per grid step that make
+    config.dt. The grid is config.dt doubled while it stays on the scenario's windows and no coarser
+    than the scenario's converged step (its integrator's `converged_dt`), so that runs at the
+    training step, the judge's step and their halvings share one program (r traced). dt = grid / r
+    is exact in floating point (r a power of two)."""
+    scenario = scenarios.get(config.scenario)
+    coarsest = INTEGRATORS[config.method].converged_dt.get((config.scenario, config.switch)) or config.dt
+    r = 1
+    while config.dt * 2 * r <= coarsest * (1 + 1e-9) and on_grid(scenario, config.dt * 2 * r, config.horizon):
+        r *= 2
+    return config.dt * r, r
+
+
+def _runs(
+    params: Params,
+    config: Config,
+    check_step: bool,
+    block: int,
+    r: int = 1,
+    shared: bool = False,
+    compile_only: bool = False,
+) -> dict | None:
     """The metrics (and with `check_step` the two-step check's error) of every sample at config.dt / r."""
     if shares_program(config) and (check_step or r > 1 or shared):
-        # One program for every step of the check and the refinements (r traced): the run, its
-        # dt / 2 and every halving compile once (a lone run at dt keeps its own, 4 % faster). Its
-        # round-off differs from a program built for one step (dt a constant): 1e-11 relative in
-        # float64, which the sliding-mode step does not amplify.
+        # One program for every step of the check and the refinements (r traced), on the grid of
+        # `grid`: the run, its dt / 2 and every halving compile once (a lone run at dt keeps its own,
+        # 4 % faster). Its round-off differs from a program built for one step (dt a constant):
+        # 1e-11 relative in float64, which the sliding-mode step does not amplify.
         metrics = step_check.halved(config).metrics if check_step or shared else config.metrics
-        program = MetricsRefined(dataclasses.replace(config, metrics=metrics))
+        step, r0 = grid(config)
+        program = MetricsRefined(dataclasses.replace(config, dt=step, metrics=metrics))
 
         def at(substeps):
-            counts = np.full(params.batch_shape[0], substeps, np.int32)
-            return devices.run(program, (params, counts), fixed_block=True, block=block)
+            counts = np.full(params.batch_shape[0], r0 * substeps, np.int32)
+            return devices.run(program, (params, counts), fixed_block=True, block=block, compile_only=compile_only)
 
         coarse, fine = at(r), at(2 * r) if check_step else None
+        if compile_only:
+            return None
     else:
         stepped = config if r == 1 else dataclasses.replace(config, dt=config.dt / r)
         coarse = devices.run(metrics_of(stepped), params, fixed_block=True, block=block)

@@ -206,3 +206,26 @@ def test_the_tuners_violation_is_the_judges_measure():
     slip = np.array([0.0, 4.0])
     _, met, miss = requirement_values(grip, {"min_grip": np.array([10.0, 7.5])}, 10.0, slip)
     assert met.tolist() == [True, False] and np.allclose(miss, [-0.001, 0.249])
+
+
+def test_training_values_run_in_the_judges_program(monkeypatch):
+    """The training step (2e-3 s on the carry) lies on the judge's grid, so the tuner's value runs
+    use the program the judge runs at 1e-3 and 5e-4 s (the step traced): judging the same draws
+    afterwards compiles no run program, and the values are those of the training step's own program
+    to round-off."""
+    from coopjax import devices
+    from tuning import evaluate
+    from tuning.tuners import Query
+
+    problem = Problem(names=("K_GP", "G_e"))
+    thetas, draws = np.log([[0.5, 600.0], [0.3, 900.0]]), np.array([[1.0], [3.0]])
+    devices._compiled.cache_clear()
+    shared = evaluate.Evaluator(problem, None)(Query(thetas, draws))
+    programs = devices._compiled.cache_info().currsize
+    judgement.judge({"K_GP": 0.3, "G_e": 900.0}, draws, problem)  # checked at dt / 2
+    assert devices._compiled.cache_info().currsize == programs
+    monkeypatch.setattr(evaluate, "_judged", lambda problem, config: None)
+    own = evaluate.Evaluator(problem, None)(Query(thetas, draws))  # the training step's own program
+    assert shared.valid.all() and own.valid.all()
+    np.testing.assert_allclose(shared.f, own.f, rtol=1e-11)
+    np.testing.assert_allclose(shared.c, own.c, rtol=1e-11, atol=1e-11)

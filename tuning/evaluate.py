@@ -18,6 +18,7 @@ spend evaluating. The batch is split over every local device inside the run prog
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 import time
@@ -26,10 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from coopjax import devices
+from coopjax import devices, evaluation
 from coopjax.config import Config
 from coopjax.params import ROBOTS, split_name
 from coopjax.stability import stable_dt
+from tuning.judging import JUDGE_BLOCK, judge_config, judged_metrics
 from tuning.problem import Problem
 from tuning.training import bound_values, combine, params_for, run_metrics
 from tuning.tuners import Evaluation, Query
@@ -99,6 +101,20 @@ def _pick(grad: dict, values: dict, name: str):
     if robot is not None:
         return (g * value)[ROBOTS.index(robot)]
     return g * value if g.ndim == 1 else (g * value).sum(0)
+
+
+@functools.lru_cache(maxsize=64)
+def _judged(problem: Problem, config: Config) -> Config | None:
+    """The judge's configuration of a training run, where the two differ only in their step and
+    metrics, and the judge's program (`coopjax.evaluation.grid`) takes the training step: the
+    training values then run in the program the validation, the verdict and the search between draws
+    run, and one compile serves them all (values move by round-off, 1e-11 relative). None: the
+    training run keeps a program of its own (a smooth surrogate, or a step off the judge's grid)."""
+    judged = judge_config(config.dt, config.scenario, judged_metrics(problem, config.scenario)).validate()
+    plain = lambda c: dataclasses.replace(c, integrator=c.method, metrics=())
+    if plain(config) != plain(judged) or not evaluation.shares_program(judged):
+        return None
+    return judged
 
 
 @functools.lru_cache(maxsize=32)
@@ -182,12 +198,29 @@ class Evaluator:
         """Every scenario's runs: metrics (and tangents, or pulled-back gradients with `cotangents`)."""
         out = []
         for i, config in enumerate(self.problem.configs):
+            judged = _judged(self.problem, config) if kind is None else None
+            if judged is not None:
+                out.append(self._judge_program(params, config, judged, execute, clock))
+                continue
             fn = _runs(config, kind, self.problem.names, self.checkpoint)
             args = (params,) if kind != "vjp" else (params, cotangents[i])
             result = self._call(("runs", config, kind, self.problem.names, self.checkpoint), fn, args, execute, clock)
             # On the host: the runs' outputs are split over the devices, the algebra runs on one.
             out.append(jax.device_get(result) if execute else result)
         return out
+
+    def _judge_program(self, params, config: Config, judged: Config, execute: bool, clock: bool):
+        """A scenario's training values in the judge's program (`_judged`): its metrics, as floats."""
+        start = time.perf_counter()
+        # Compiled apart first, so that its compile time is counted as every program's is.
+        evaluation.shared_runs(params, judged, JUDGE_BLOCK, compile_only=True)
+        if clock:
+            self.compile_s += time.perf_counter() - start
+        B = params.batch_shape[0]
+        if not execute:
+            return {n: jax.ShapeDtypeStruct((B,), params.dtype) for n in (*config.metrics, "finite")}
+        out = evaluation.shared_runs(params, judged, JUDGE_BLOCK)
+        return {n: out[n].astype(params.dtype) for n in (*config.metrics, "finite")}
 
     def warm_up(self, query: Query) -> None:
         """Compile for this query's kind and shapes now (not on anyone's clock)."""
