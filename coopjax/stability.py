@@ -30,6 +30,7 @@ from coopjax.params import Params, as_batched
 from coopjax.traced import is_traced
 
 MIN_PRACTICAL_DT = 1e-9  # s: a loop that needs a finer step than this has a parameter wrong
+CHUNK = 256  # samples per call of the linearisation (one program for every batch size)
 ULPS_ABOVE_F_LIM = 64  # the switch-on operating point's force, in units of round-off above F_lim
 
 
@@ -63,16 +64,16 @@ def fastest_modes(params: Params, config) -> np.ndarray:
     """Eigenvalues (1/s) of the linearised loop, shape (B, 2 operating points, 20)."""
     batched, _ = as_batched(params)
     size = batched.batch_shape[-1]
-    # Padded (repeating the last sample) to a power of two of at least 64: one compiled program
-    # serves every batch size up to it, where each new size compiled its own (1 to 2 s each).
-    pad = max(64, 1 << (size - 1).bit_length()) - size
+    # In chunks of `CHUNK` (the last padded by repeating its last sample): one compiled program
+    # serves every batch size, where each new size compiled its own (1 to 2 s each).
     leaves, tree = jax.tree_util.tree_flatten(batched)
-    batched = jax.tree_util.tree_unflatten(
-        tree, devices.pad_batch([np.asarray(x, np.float64) for x in leaves], pad, np)
-    )
+    leaves = devices.pad_batch([np.asarray(x, np.float64) for x in leaves], -size % CHUNK, np)
+    chunks = []
     with jax.enable_x64(True):  # float64 whatever the run uses: the limit must not depend on it
-        J = np.asarray(_jacobians_jit(batched, config.scenario, config.options))[:size]
-    return np.linalg.eigvals(J)
+        for s in range(0, size, CHUNK):
+            chunk = jax.tree_util.tree_unflatten(tree, [x[..., s : s + CHUNK] for x in leaves])
+            chunks.append(np.asarray(_jacobians_jit(chunk, config.scenario, config.options)))
+    return np.linalg.eigvals(np.concatenate(chunks)[:size])
 
 
 def stable_dt(params: Params, config) -> tuple[np.ndarray, np.ndarray]:
