@@ -21,7 +21,6 @@ import tempfile
 import threading
 
 import numpy as np
-import pandas as pd
 
 from coopjax.errors import InputError
 
@@ -121,6 +120,8 @@ def is_parquet(path: str) -> bool:
 def write_table(path: str, columns: dict) -> None:
     """CSV at full precision (the shortest repr that reads back exactly; booleans as 0/1) or Parquet
     (needs pyarrow), through pandas, atomically."""
+    import pandas as pd  # on first use: it takes a second to import, and most commands read no table
+
     frame = pd.DataFrame({k: np.asarray(v) for k, v in columns.items()})
     with atomic_path(path) as tmp:
         if is_parquet(path):
@@ -153,6 +154,8 @@ def _check_csv_shape(path: str, what: str) -> None:
 def read_table(path: str, what: str = "table") -> dict[str, np.ndarray]:
     """A sweep or parameter table: numeric columns as float64, others as strings. Any problem with
     the file is one InputError that names it (and the line, for a malformed CSV)."""
+    import pandas as pd  # on first use (above)
+
     if os.path.isdir(path):
         raise InputError(f"{what} {path!r} is a folder, not a file")
     if not os.path.exists(path):
@@ -186,6 +189,8 @@ def read_table(path: str, what: str = "table") -> dict[str, np.ndarray]:
 
 def _column(series) -> np.ndarray:
     """float64 where every value is a number (empty and 'nan' are NaN), else strings."""
+    import pandas as pd  # on first use (above)
+
     if series.dtype.kind in "biuf":
         return series.to_numpy(np.float64)
     text = series.astype(str).str.strip()

@@ -8,8 +8,6 @@
 
 from __future__ import annotations
 
-import pandas as pd
-
 from coopjax.config import Config
 from coopjax.sweeps.draws import KINDS, Distribution, draw, parse_distribution
 from coopjax.sweeps.parts import finished_parts
@@ -48,5 +46,7 @@ def sweep(
 
     Example: `sweep("carry", 1000, vary={"M_b": "loguniform:0.5:5", "K_GP": "uniform:0.2:1"})`.
     """
+    import pandas as pd  # on first use (`coopjax.io`)
+
     spec = make_spec(config, n=n, vary=vary, fixed=fixed, seed=seed, table=table, **settings)
     return pd.DataFrame(run(spec, chunk=chunk, progress=progress))
