@@ -6,7 +6,9 @@ An evaluation is two kinds of compiled program:
   tangents along the tuned parameters (a Jacobian) or their reverse-mode pull-back (a gradient).
   These programs depend on the scenario's training configuration, the tuned names and the batch
   shape, not on the problem's terms, so problems that differ only in what they minimise and require
-  share them (and the compile cache keeps them between runs);
+  share them (and the compile cache keeps them between runs). The values alone (no derivative) run
+  in the judge's program wherever the training step lies on its grid (`_judged`): the step is traced
+  there, so training, validation, the verdict and the search between draws compile one program;
 - **the problem's algebra** (`tuning.problem.combine`): aggregates, requirements, the tuner's scalar,
   and their derivatives with respect to the metrics: small programs, quick to compile.
 
@@ -188,7 +190,7 @@ class Evaluator:
         return None, None
 
     def _params(self, query: Query):
-        thetas = jnp.asarray(query.thetas, jnp.float64)
+        thetas = np.asarray(query.thetas, np.float64)
         draws = np.asarray(query.draws, np.float64)
         draws = draws[:, None] if draws.ndim == 1 else draws
         params = params_for(self.base, self.problem, thetas, draws)

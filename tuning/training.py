@@ -54,16 +54,19 @@ def params_for(base: Params, problem: Problem, theta, draws) -> Params:
     """Parameter sets for starts x draws: theta is (K, n) log-values, draws (M, p) values of the
     uncertain parameters (or (M,) of the one); batch K * M, sample k * M + m is start k at draw m.
     Per-robot names (`K_GP_L`) set one robot. `base` carries the fixed values (`Problem.base`)."""
+    # NumPy for a NumPy theta (the evaluator's queries, on the host): no small program compiled per
+    # batch shape for each of these operations, as JAX's eager ones are.
+    xp = np if isinstance(theta, np.ndarray) else jnp
     K = theta.shape[0]
-    draws = jnp.asarray(draws, theta.dtype)
+    draws = xp.asarray(draws, theta.dtype)
     draws = draws[:, None] if draws.ndim == 1 else draws
     M = draws.shape[0]
-    values = {n: jnp.repeat(jnp.exp(theta[:, i]), M) for i, n in enumerate(problem.names)}
-    values |= {u.name: jnp.tile(draws[:, i], K) for i, u in enumerate(problem.uncertain)}
+    values = {n: xp.repeat(xp.exp(theta[:, i]), M) for i, n in enumerate(problem.names)}
+    values |= {u.name: xp.tile(draws[:, i], K) for i, u in enumerate(problem.uncertain)}
     if problem.switch != "hard":
-        values |= {k: jnp.full((K * M,), v, theta.dtype) for k, v in NARROW._asdict().items()}
+        values |= {k: xp.full((K * M,), v, theta.dtype) for k, v in NARROW._asdict().items()}
     if "M_b" not in values:  # every leaf carries the batch
-        values["M_b"] = jnp.full((K * M,), base.M_b, theta.dtype)
+        values["M_b"] = xp.full((K * M,), np.asarray(base.M_b), theta.dtype)
     return base.replace(**values)
 
 
@@ -197,7 +200,7 @@ PROBES = 128  # Sobol points of the starts' box whose linearised loops decide th
 def least_limit(problem: Problem, base: Params, thetas, draws) -> np.ndarray:
     """(K,) per candidate (log parameters), the smallest stability limit of its linearised loop over
     the draws and the problem's scenarios, s."""
-    params = params_for(base, problem, jnp.asarray(thetas), draws)
+    params = params_for(base, problem, np.asarray(thetas, np.float64), draws)
     limit = np.min([np.asarray(stable_dt(params, c)[0]) for c in problem.configs], axis=0)
     return limit.reshape(len(thetas), len(draws)).min(1)
 
