@@ -61,6 +61,14 @@ def timed(self, key, fn, args, execute, *rest):
         runs[str(key[2] or "values")].append(time.perf_counter() - t)
     return out
 evaluate.Evaluator._call = timed
+shared = evaluate.Evaluator._judge_program  # the values, where they run in the judge's program
+def timed_shared(self, params, config, judged, execute, clock):
+    t = time.perf_counter()
+    out = shared(self, params, config, judged, execute, clock)
+    if execute:
+        runs["values"].append(time.perf_counter() - t)
+    return out
+evaluate.Evaluator._judge_program = timed_shared
 from coopjax.cli import main
 code = main(["tune", "--seed", sys.argv[1], "--out", sys.argv[2], "--quiet"])
 print(json.dumps(dict(code=code, wall=time.perf_counter() - start, programs=programs, runs=runs)))
