@@ -177,8 +177,8 @@ def run(
 
     `fn` must be hashable (it keys the cache of compiled programs) and map a batch to a pytree
     whose leaves, where `batched(out)` says so, carry the batch as their last axis. With
-    `compile_only`, a concrete batch's program is compiled (`compiled`), nothing runs, and None is
-    returned.
+    `compile_only`, a concrete batch's program is compiled (`compiled`) and returned, and nothing
+    runs.
     """
     leaves, tree = jax.tree_util.tree_flatten(params)
     shape = np.shape(leaves[0])[-1:] if leaves and np.ndim(leaves[0]) else ()
@@ -197,8 +197,7 @@ def run(
     slabs = ordered is not None
     if not shape or (n == 1 and not fixed_block and (size <= block or not slabs)):
         if compile_only:
-            compiled(_compiled(fn, 1, batched, False), params)
-            return None
+            return compiled(_compiled(fn, 1, batched, False), params)
         return _compiled(fn, 1, batched, False)(params)
     if fixed_block or (n > 1 and size > n * block):
         slab = n * block
@@ -220,7 +219,7 @@ def run(
     ]
     executable = compiled(program, parts_in[0])  # outside the lock: another thread's programs may run meanwhile
     if compile_only:
-        return None
+        return executable
     if n == 1:
         parts = [executable(x) for x in parts_in]
     else:

@@ -112,11 +112,11 @@ def evaluate(
     return {name: out[name] for name in columns(config, check_step, refine)}
 
 
-def shared_runs(params: Params, config: Config, block: int, compile_only: bool = False) -> dict | None:
+def shared_runs(params: Params, config: Config, block: int, compile_only: bool = False):
     """The metrics of every sample at config.dt, unchecked, in the program `evaluate` with `shared`
     runs: a caller that also judges (the tuner, whose training runs at a step of the judge's grid,
-    `grid`) compiles one program for both. With `compile_only`, the program is compiled and nothing
-    runs (None)."""
+    `grid`) compiles one program for both. With `compile_only`, the compiled program is returned
+    and nothing runs."""
     if not shares_program(config):
         raise ValueError(f"{config.method} at dt = {config.dt} shares no program (shares_program)")
     return _runs(config.cast(params), config, False, block, shared=True, compile_only=compile_only)
@@ -144,8 +144,9 @@ def _runs(
     r: int = 1,
     shared: bool = False,
     compile_only: bool = False,
-) -> dict | None:
-    """The metrics (and with `check_step` the two-step check's error) of every sample at config.dt / r."""
+):
+    """The metrics (and with `check_step` the two-step check's error) of every sample at config.dt / r
+    (with `compile_only`, the compiled program, where it is shared; nothing runs)."""
     if shares_program(config) and (check_step or r > 1 or shared):
         # One program for every step of the check and the refinements (r traced), on the grid of
         # `grid`: the run, its dt / 2 and every halving compile once (a lone run at dt keeps its own,
@@ -159,9 +160,9 @@ def _runs(
             counts = np.full(params.batch_shape[0], r0 * substeps, np.int32)
             return devices.run(program, (params, counts), fixed_block=True, block=block, compile_only=compile_only)
 
-        coarse, fine = at(r), at(2 * r) if check_step else None
         if compile_only:
-            return None
+            return at(r)
+        coarse, fine = at(r), at(2 * r) if check_step else None
     else:
         stepped = config if r == 1 else dataclasses.replace(config, dt=config.dt / r)
         coarse = devices.run(metrics_of(stepped), params, fixed_block=True, block=block)

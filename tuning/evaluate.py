@@ -215,7 +215,8 @@ class Evaluator:
         """A scenario's training values in the judge's program (`_judged`): its metrics, as floats."""
         start = time.perf_counter()
         # Compiled apart first, so that its compile time is counted as every program's is.
-        evaluation.shared_runs(params, judged, JUDGE_BLOCK, compile_only=True)
+        program = evaluation.shared_runs(params, judged, JUDGE_BLOCK, compile_only=True)
+        self.programs[("runs", judged, None, params.batch_shape)] = program
         if clock:
             self.compile_s += time.perf_counter() - start
         B = params.batch_shape[0]
