@@ -229,3 +229,21 @@ def test_training_values_run_in_the_judges_program(monkeypatch):
     assert shared.valid.all() and own.valid.all()
     np.testing.assert_allclose(shared.f, own.f, rtol=1e-11)
     np.testing.assert_allclose(shared.c, own.c, rtol=1e-11, atol=1e-11)
+
+
+def test_the_shared_programs_grid_makes_every_step_exactly():
+    """Steps of the judge's grid (the carry's converged 2 ms, the paper's 1 ms) share its program;
+    each is grid / r bit for bit, r a power of two; a step off the grid keeps its own."""
+    from coopjax import evaluation
+
+    for scenario, dt, grid, r in [
+        ("carry", 2e-3, 2e-3, 1),
+        ("carry", 1e-3, 2e-3, 2),
+        ("carry", 6.25e-5, 2e-3, 32),
+        ("paper", 1e-3, 1e-3, 1),
+        ("paper", 5e-4, 1e-3, 2),
+    ]:
+        config = judgement.judge_config(dt, scenario)
+        assert evaluation.grid(config) == (grid, r)
+        assert grid / r == dt
+    assert evaluation.grid(judgement.judge_config(1.5e-3, "carry"))[1] == 1
