@@ -256,16 +256,13 @@ _COMPILING = threading.Lock()
 MAX_EXECUTABLES = 256
 
 
-def _signature(args) -> tuple:
-    leaves, tree = jax.tree_util.tree_flatten(args)
-    return (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
-
-
 def compiled(program, *args, key=None):
     """`program` (a jitted function) compiled ahead of time for these arguments' shapes, dtypes and
     shardings, once per process, whichever thread asks first. `key` names the program (default: the
     function object itself), for callers whose programs are rebuilt from a description."""
-    key = (program if key is None else key, *_signature(args))
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    signature = (str(tree), tuple((np.shape(x), str(x.dtype), getattr(x, "sharding", None)) for x in leaves))
+    key = (program if key is None else key, *signature)
     with _COMPILING:
         future, mine = _EXECUTABLES.get(key), False
         if future is None:

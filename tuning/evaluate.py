@@ -108,10 +108,11 @@ def _pick(grad: dict, values: dict, name: str):
 @functools.lru_cache(maxsize=64)
 def _judged(problem: Problem, config: Config) -> Config | None:
     """The judge's configuration of a training run, where the two differ only in their step and
-    metrics, and the judge's program (`coopjax.evaluation.grid`) takes the training step: the
-    training values then run in the program the validation, the verdict and the search between draws
-    run, and one compile serves them all (values move by round-off, 1e-11 relative). None: the
-    training run keeps a program of its own (a smooth surrogate, or a step off the judge's grid)."""
+    metrics: the training values then run in the judge's shared program. Where the training step
+    lies on the judge's grid (`coopjax.evaluation.grid`: the carry's 2 ms, the judge's 1 ms), that is
+    the program validation, the verdict and the search between draws run, and one compile serves
+    them all (values move by round-off, 1e-11 relative). None: the training run keeps a program of
+    its own (a smooth surrogate)."""
     judged = judge_config(config.dt, config.scenario, judged_metrics(problem, config.scenario)).validate()
     plain = lambda c: dataclasses.replace(c, integrator=c.method, metrics=())
     if plain(config) != plain(judged) or not evaluation.shares_program(judged):
