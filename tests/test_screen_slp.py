@@ -168,7 +168,7 @@ def screen(tuner, starts):
 
 
 def test_the_cma_screen_spends_its_batches_where_the_merit_is_low():
-    cma = screen(ScreenSLP(screen=116, local=3, radii=4, steps=1, search="cma"), [[2.0, 2.0]])
+    cma = screen(ScreenSLP(screen=116, local=3, radii=4, steps=1, search="cma", strategies=1), [[2.0, 2.0]])
     sobol = screen(ScreenSLP(screen=116, local=3, radii=4, steps=1, search="sobol"), [[2.0, 2.0]])
     assert [len(x) for x, _ in cma] == [len(x) for x, _ in sobol] == [12] * 10  # the same runs, the same batches
     assert np.array_equal(cma[0][0], sobol[0][0])  # the first batch: the start and Sobol points, for both
@@ -180,6 +180,23 @@ def test_the_cma_screen_spends_its_batches_where_the_merit_is_low():
     assert max(np.median(phi) for _, phi in sobol) > 8.0  # Sobol points stay spread over the box
     best = lambda batches: min(phi.min() for _, phi in batches)
     assert best(cma) - CB2_MIN < 0.05 < 0.2 < best(sobol) - CB2_MIN
+
+
+def test_the_screens_strategies_share_each_batch_and_each_is_told_its_own_half():
+    tuner = ScreenSLP(screen=236, local=3, radii=4, steps=1, strategies=2)
+    state = tuner.init(PROBLEM, np.array([[2.0, 2.0]]), 0)
+    assert [es.popsize for es in state.es] == [6, 6]
+    # The first from the start, the second from another point of the screen's box.
+    assert np.allclose(state.es[0].mean, [2.0, 2.0]) and not np.allclose(state.es[1].mean, [2.0, 2.0])
+    batches = screen(tuner, [[2.0, 2.0]])
+    assert [len(x) for x, _ in batches] == [12] * 20
+    # Each half of the last generation has concentrated near CB2's minimum, so each strategy was told
+    # its own half (`told` refuses a population it did not ask for).
+    for half in (slice(0, 6), slice(6, 12)):
+        assert np.median(batches[-1][1][half]) < CB2_MIN + 0.5 < 5.0 < np.median(batches[1][1][half])
+    for wrong in (0, 17):  # 17: more runs than the batch of 32 can give two points each
+        with pytest.raises(Exception, match="strategies"):
+            ScreenSLP(strategies=wrong)
 
 
 def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():

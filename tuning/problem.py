@@ -199,7 +199,8 @@ class Problem:
       require: the `Requirement`s, each at every draw.
       bounds: (name, low, high) search boxes replacing the defaults of `bounds`.
       fixed: (name, value) parameters held at a value (besides the defaults of Table 1).
-      n_draws: training draws per step (with several uncertain parameters: besides the corners).
+      n_draws: training draws per step (with several uncertain parameters: besides the corners; twice
+        as many in a fixed design, `design.FIXED_SOBOL`).
       jitter: fresh training draws every step; False: a fixed design.
       margin: training draws span the box widened by this share (selection by half of it).
       switch: the training model: hard (sliding-mode integrator) or a smooth surrogate.
@@ -226,7 +227,8 @@ class Problem:
     n_draws: int = setting(
         8,
         "training draws per step (screen-SLP: a grid, ends included; gradient: one per equal-probability "
-        "stratum, drawn afresh each step; with several uncertain parameters, besides the box's corners)",
+        "stratum, drawn afresh each step; with several uncertain parameters, besides the box's corners, and "
+        "screen-SLP takes twice as many)",
         "--train-masses",
         kind=int,
         key="training.n_draws",

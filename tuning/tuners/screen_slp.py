@@ -4,9 +4,10 @@ Jacobians: the simulator's two strengths, one after the other.
 1. **Screen.** The given starts and `screen` more points in the box around the first start
    (x/÷ e^spread), run at every training draw in batches of the trials' shape (one compiled program
    for both). With `search="cma"` (the default) the first batch is the starts and scrambled-Sobol
-   points, and every later batch is a generation of CMA-ES (the `cma` package: population one
-   batch, initial step `sigma0`, bounded by the box) minimising the merit phi below: the same number
-   of runs as a Sobol screen, spent where the merit is low. With `search="sobol"` every point is a
+   points, and every later batch is a generation of `strategies` CMA-ES runs side by side (the `cma`
+   package: the batch shared between them, initial step `sigma0`, bounded by the box; the first from
+   the first start, the others from random points of the box) minimising the merit phi below: the
+   same number of runs as a Sobol screen, spent where the merit is low. With `search="sobol"` every point is a
    Sobol point. The `local` best of all points screened are kept, no two closer than `diverse` (log
    units, max norm), so the local solves do not all refine one basin; the next ones wait in a queue.
 2. **Local solve.** The worst case over the draws has a kink wherever two draws are worst at once,
@@ -92,7 +93,7 @@ class State:
     screen_log: list = dataclasses.field(default_factory=list)  # its batches so far: (thetas, Evaluation)
     seed: int = 0
     problem: object = None
-    es: object = None  # search="cma": the screen's evolution strategy (rebuilt by replay on resume)
+    es: tuple = ()  # search="cma": the screen's evolution strategies (rebuilt by replay on resume)
     polish_es: object = None  # the polish's evolution strategy
     polished: Best = Best()  # the polish's best point, by its merit (`polish_merit`)
     # No local solve met every requirement at every training draw: the polish minimises the judge's
@@ -301,7 +302,7 @@ class ScreenSLP(Tuner):
     local_solve: ClassVar[bool] = True
 
     screen: int = setting(
-        512,
+        2048,
         "points screened in the box x/÷ e^SPREAD around the first start, besides the starts (Sobol: a power of 2)",
         "--screen",
     )
@@ -313,6 +314,10 @@ class ScreenSLP(Tuner):
         ("cma", "sobol"),
     )
     sigma0: float = 1.0  # search="cma": CMA-ES's initial step, log units
+    # search="cma": independent evolution strategies sharing each batch of the screen, the first from
+    # the first start, the others from random points of the screen's box. One run of the screen often
+    # settles in a poor basin; two halves of the batch are two chances (docs/tuning.md).
+    strategies: int = 2
     local: int = setting(8, "local solves run side by side (lanes of one batch)", "--local")
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
     diverse: float = 0.5  # least distance between two local starts, log units (max norm)
@@ -370,6 +375,7 @@ class ScreenSLP(Tuner):
             ("screen", 0),
             ("steps", 1),
             ("local", 1),
+            ("strategies", 1),
             ("polish", 0),
             ("polish_finer", 1),
             ("feasibility_finer", 1),
@@ -377,6 +383,12 @@ class ScreenSLP(Tuner):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(f"{field} is {value!r}: a whole number, at least {least}", field)
+        if self.search == "cma" and 2 * self.strategies > self.local * self.radii:  # CMA-ES needs 2 per generation
+            raise InputError(
+                f"strategies is {self.strategies}: at most {self.local * self.radii // 2}, half the screen's batch "
+                f"(--local {self.local} x {self.radii} radii)",
+                "strategies",
+            )
 
     def history(self, state) -> dict:
         return state.history
@@ -391,7 +403,10 @@ class ScreenSLP(Tuner):
         state.screen_all = self.screen_points(state)
         if self.search == "cma":
             a, b = self._box(state)
-            state.es = strategy(state.starts[0], self.sigma0, a, b, seed + 1, self.local * self.radii)
+            x0 = np.random.default_rng(seed).uniform(a, b, (self.strategies, len(a)))
+            x0[0] = state.starts[0]
+            sizes = [len(part) for part in np.array_split(np.arange(self.local * self.radii), self.strategies)]
+            state.es = tuple(strategy(x, self.sigma0, a, b, seed + 1 + j, k) for j, (x, k) in enumerate(zip(x0, sizes)))
         return state
 
     def later_queries(self, state):
@@ -411,10 +426,12 @@ class ScreenSLP(Tuner):
         return min(-(-len(state.starts) // batch) * batch, len(state.screen_all))
 
     def _generation(self, state) -> np.ndarray:
-        return sample(state.es)
+        return np.concatenate([sample(es) for es in state.es])
 
     def _tell_strategy(self, state, thetas, phi, ev):
-        state.es = told(state.es, thetas, np.where(np.isfinite(phi), phi, ev.bad(BAD)).tolist())
+        values = np.where(np.isfinite(phi), phi, ev.bad(BAD))
+        ends = np.cumsum([0] + [es.popsize for es in state.es])
+        state.es = tuple(told(es, thetas[i:j], values[i:j].tolist()) for es, i, j in zip(state.es, ends, ends[1:]))
 
     def _sobol_count(self, starts: int) -> int:
         """Sobol points in the screen: at least `screen`, as many as fill the last batch."""
@@ -718,9 +735,10 @@ class ScreenSLP(Tuner):
         seeded = min(-(-starts // batch) * batch, starts + count)
         if self.search == "sobol" or seeded == starts + count:
             return f"{starts} starts + {count} Sobol points"
+        runs = f"{self.strategies} CMA-ES runs side by side" if self.strategies > 1 else "CMA-ES"
         return (
-            f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} CMA-ES "
-            f"generations of {batch}"
+            f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} "
+            f"generations of {batch} ({runs})"
         )
 
     def progress_text(self, state, query, ev):
