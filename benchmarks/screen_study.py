@@ -31,6 +31,11 @@ def main(argv=None) -> int:
     parser.add_argument("--problem", default="default", help="a problem of benchmarks/problems/ (file name)")
     parser.add_argument("--points", type=int, default=2048, help="points screened after the first batch")
     parser.add_argument("--seeds", default="0,1,2,3,4")
+    parser.add_argument(
+        "--fixed-sobol",
+        type=int,
+        help="Sobol points per n_draws of a design over several parameters (default: the tool's)",
+    )
     args = parser.parse_args(argv)
     import cma
     import jax
@@ -38,17 +43,18 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     import coopjax
 
-    coopjax.use_all_cores()
-    coopjax.use_cache()
+    coopjax.use_cache()  # one CPU device, as the figures of docs/tuning.md were measured
     from scipy.stats import qmc
 
-    from tuning import TUNERS
+    from tuning import TUNERS, design
     from tuning.evaluate import Evaluator
     from tuning.problem import Problem, to_log
     from tuning.session import Options, prepare
     from tuning.tuners.base import Query
     from tuning.tuners.screen_slp import _outputs, merit
 
+    if args.fixed_sobol:
+        design.FIXED_SOBOL = args.fixed_sobol
     path = os.path.join(HERE, "problems", args.problem + ".toml")
     tuner = TUNERS["screen-SLP"]()
     session = prepare(Problem.from_toml(path), tuner, Options())
