@@ -194,9 +194,10 @@ def test_the_screens_strategies_share_each_batch_and_each_is_told_its_own_half()
     # its own half (`told` refuses a population it did not ask for).
     for half in (slice(0, 6), slice(6, 12)):
         assert np.median(batches[-1][1][half]) < CB2_MIN + 0.5 < 5.0 < np.median(batches[1][1][half])
-    for wrong in (0, 17):  # 17: more runs than the batch of 32 can give two points each
-        with pytest.raises(Exception, match="strategies"):
-            ScreenSLP(strategies=wrong)
+    with pytest.raises(Exception, match="strategies"):
+        ScreenSLP(strategies=0)
+    # A batch too small for two points per run runs fewer: here one, of the whole batch of 2.
+    assert [es.popsize for es in ScreenSLP(local=1, radii=2).init(PROBLEM, np.array([[2.0, 2.0]]), 0).es] == [2]
 
 
 def test_a_trial_that_breaks_is_not_taken_and_the_solve_goes_on():

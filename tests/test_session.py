@@ -238,7 +238,10 @@ def test_where_the_polishs_answer_is_chosen_the_polish_goes_on_while_it_wins_on_
     assert before.selection["further"] == []
     after = session.run(session.prepare(problem, tuner, dataclasses.replace(OPTIONS, further=2)))
     rounds = after.selection["further"]
-    assert [r["kept"] for r in rounds] == [session.LONGER, "the answer before"]  # here: one won, one lost
+    # Here one won and the next lost: on the validation draws, or with nothing better on the training
+    # draws to offer them (which of the two follows the last bits of the runs).
+    assert [r["kept"] for r in rounds][0] == session.LONGER and len(rounds) == 2
+    assert rounds[1]["kept"] in ("the answer before", "nothing better on the training draws")
     assert after.result.evaluations == before.result.evaluations + tuner.polish * len(rounds)
     kept = [r["kept"] == session.LONGER for r in rounds]
     assert all(kept[:-1])  # a round that loses is the last

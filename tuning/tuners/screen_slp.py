@@ -315,8 +315,9 @@ class ScreenSLP(Tuner):
     )
     sigma0: float = 1.0  # search="cma": CMA-ES's initial step, log units
     # search="cma": independent evolution strategies sharing each batch of the screen, the first from
-    # the first start, the others from random points of the screen's box. One run of the screen often
-    # settles in a poor basin; two halves of the batch are two chances (docs/tuning.md).
+    # the first start, the others from random points of the screen's box (fewer where the batch has
+    # not 2 points for each). One run of the screen often settles in a poor basin; two halves of the
+    # batch are two chances (docs/tuning.md).
     strategies: int = 2
     local: int = setting(8, "local solves run side by side (lanes of one batch)", "--local")
     refills: int = 2  # the screen queues refills x local more points, for lanes whose solve has converged
@@ -383,12 +384,6 @@ class ScreenSLP(Tuner):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(f"{field} is {value!r}: a whole number, at least {least}", field)
-        if self.search == "cma" and 2 * self.strategies > self.local * self.radii:  # CMA-ES needs 2 per generation
-            raise InputError(
-                f"strategies is {self.strategies}: at most {self.local * self.radii // 2}, half the screen's batch "
-                f"(--local {self.local} x {self.radii} radii)",
-                "strategies",
-            )
 
     def history(self, state) -> dict:
         return state.history
@@ -403,9 +398,11 @@ class ScreenSLP(Tuner):
         state.screen_all = self.screen_points(state)
         if self.search == "cma":
             a, b = self._box(state)
-            x0 = np.random.default_rng(seed).uniform(a, b, (self.strategies, len(a)))
+            batch = self.local * self.radii
+            runs = max(1, min(self.strategies, batch // 2))  # at least 2 points per run and generation
+            x0 = np.random.default_rng(seed).uniform(a, b, (runs, len(a)))
             x0[0] = state.starts[0]
-            sizes = [len(part) for part in np.array_split(np.arange(self.local * self.radii), self.strategies)]
+            sizes = [len(part) for part in np.array_split(np.arange(batch), runs)]
             state.es = tuple(strategy(x, self.sigma0, a, b, seed + 1 + j, k) for j, (x, k) in enumerate(zip(x0, sizes)))
         return state
 
@@ -735,7 +732,8 @@ class ScreenSLP(Tuner):
         seeded = min(-(-starts // batch) * batch, starts + count)
         if self.search == "sobol" or seeded == starts + count:
             return f"{starts} starts + {count} Sobol points"
-        runs = f"{self.strategies} CMA-ES runs side by side" if self.strategies > 1 else "CMA-ES"
+        many = min(self.strategies, batch // 2)
+        runs = f"{many} CMA-ES runs side by side" if many > 1 else "CMA-ES"
         return (
             f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} "
             f"generations of {batch} ({runs})"
