@@ -51,7 +51,6 @@ def main(argv=None) -> int:
     from tuning.problem import Problem, to_log
     from tuning.session import Options, prepare
     from tuning.tuners.base import Query
-    from tuning.tuners.screen_slp import _outputs, merit
 
     if args.fixed_sobol:
         design.FIXED_SOBOL = args.fixed_sobol
@@ -64,13 +63,12 @@ def main(argv=None) -> int:
     lo, hi = problem.log_bounds()
     first = np.clip(to_log(session.first, problem.names), lo, hi)
 
+    state = tuner.init(problem, first[None], 0)  # the tuner's draws and merit (`ScreenSLP._ok_phi`)
+
     def phi(thetas):
         """(the merit, inf where not measured; the value CMA-ES is told)"""
         ev = evaluator(Query(np.asarray(thetas), draws))
-        out = _outputs(ev)
-        ok = ev.valid & np.all([np.isfinite(v).reshape(len(ev.f), -1).all(1) for v in out.values()], axis=0)
-        value = merit(out, problem, len(draws), tuner.penalty, tuner.swi_penalty, tuner.swi_margin)
-        value = np.where(ok, value, np.inf)
+        _, ok, value = tuner._ok_phi(state, ev)
         return value, np.where(ok, value, ev.bad(1e6))
 
     known = json.load(open(os.path.join(HERE, "problems", "best_known.json"))).get(args.problem)

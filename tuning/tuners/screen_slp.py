@@ -398,11 +398,9 @@ class ScreenSLP(Tuner):
         state.screen_all = self.screen_points(state)
         if self.search == "cma":
             a, b = self._box(state)
-            batch = self.local * self.radii
-            runs = max(1, min(self.strategies, batch // 2))  # at least 2 points per run and generation
-            x0 = np.random.default_rng(seed).uniform(a, b, (runs, len(a)))
+            x0 = np.random.default_rng(seed).uniform(a, b, (self._runs(), len(a)))
             x0[0] = state.starts[0]
-            sizes = [len(part) for part in np.array_split(np.arange(batch), runs)]
+            sizes = [len(part) for part in np.array_split(np.arange(self.local * self.radii), self._runs())]
             state.es = tuple(strategy(x, self.sigma0, a, b, seed + 1 + j, k) for j, (x, k) in enumerate(zip(x0, sizes)))
         return state
 
@@ -421,6 +419,10 @@ class ScreenSLP(Tuner):
         filling their last batch."""
         batch = self.local * self.radii
         return min(-(-len(state.starts) // batch) * batch, len(state.screen_all))
+
+    def _runs(self) -> int:
+        """search="cma": the screen's CMA-ES runs, at least 2 points each per generation."""
+        return max(1, min(self.strategies, self.local * self.radii // 2))
 
     def _generation(self, state) -> np.ndarray:
         return np.concatenate([sample(es) for es in state.es])
@@ -732,8 +734,7 @@ class ScreenSLP(Tuner):
         seeded = min(-(-starts // batch) * batch, starts + count)
         if self.search == "sobol" or seeded == starts + count:
             return f"{starts} starts + {count} Sobol points"
-        many = min(self.strategies, batch // 2)
-        runs = f"{many} CMA-ES runs side by side" if many > 1 else "CMA-ES"
+        runs = f"{self._runs()} CMA-ES runs side by side" if self._runs() > 1 else "CMA-ES"
         return (
             f"{starts} starts + {seeded - starts} Sobol points, then {(starts + count - seeded) // batch} "
             f"generations of {batch} ({runs})"
