@@ -1,11 +1,12 @@
 """The tuning problems of benchmarks/problems/, each solved by `coopjax tune --problem` at the default
 method and budget, and judged apart from the tuner: on a dense, fresh design of the uncertain
 parameters (`tuning.design.dense`: none of the tuner's draws), at the judge's step and at half of
-it, after a search between the draws for each requirement's worst case (`tuning.judging.worst_case`).
+it and a quarter of it (each value the worst of the three), after a search between the draws for
+each requirement's worst case (`tuning.judging.worst_case`).
 
     python -m benchmarks.problem_suite [--out DIR] [--cached] [NAME ...]
 
-Per problem: solved (every requirement met on the dense design, at dt and dt/2), the objective
+Per problem: solved (every requirement met on the dense design, at dt, dt/2 and dt/4), the objective
 against the best-known answer (benchmarks/problems/best_known.json, `python -m benchmarks.best_known`),
 the least violation where the problem is infeasible, the exit code and the requirement the command
 named, and the wall time with an empty compile cache (and with it filled by that run: `--cached`).
@@ -51,27 +52,53 @@ def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> 
     return json.load(open(out)), wall, done.returncode, done.stdout
 
 
+# The judge's step and its halves. A value that moves between them is not yet the dt -> 0 limit's
+# (an event the grid does not resolve): each answer is counted at its worst over the three.
+HALVINGS = (1, 2, 4)
+
+
+def ladder(sets: list[dict], draws, problem, extra=None) -> list[list]:
+    """Per step of `HALVINGS`, the verdicts of `sets` on `draws` (and `extra`); at the judge's step
+    with the two-step check, so that a step artefact does not hold."""
+    from tuning.judging import JUDGE_DT, judge
+
+    return [judge(list(sets), draws, problem, dt=JUDGE_DT / r, check_step=r == 1, extra=extra) for r in HALVINGS]
+
+
+def worst_over_steps(verdicts: list) -> dict:
+    """One answer's verdicts at the steps of `HALVINGS`, counted at their worst."""
+    return {
+        "holds": all(v.holds for v in verdicts),
+        "objective": max(v.objective for v in verdicts),
+        "violation": max(v.violation for v in verdicts),
+        "unmeasured": max(v.unmeasured for v in verdicts),
+    }
+
+
 def judged(params: dict, problem) -> dict:
-    """The dense, fresh judgement of one answer: at dt (and dt/2, the two-step check), with the
-    worst cases found between the draws added, and again at dt/2 alone."""
+    """The dense, fresh judgement of one answer, with the worst cases found between the draws added:
+    at dt (with the two-step check), dt/2 and dt/4, each value the worst of the three."""
     from tuning import design
-    from tuning.judging import JUDGE_DT, judge, worst_case
+    from tuning.judging import judge, worst_case
 
     draws = design.dense(problem.uncertain)
     first = judge(params, draws, problem, check_step=True)
     extra = worst_case(params, draws, problem, verdict=first)
-    v = judge(params, draws, problem, check_step=True, extra=extra)
-    half = judge(params, draws, problem, dt=JUDGE_DT / 2, check_step=False, extra=extra)
+    steps = [vs[0] for vs in ladder([params], draws, problem, extra)]
+    v, half, quarter = steps
+    worst = worst_over_steps(steps)
     return {
-        "solved": bool(v.holds and half.holds),
-        "objective": v.objective,
+        "solved": worst["holds"],
+        "objective": worst["objective"],
         "objective_half": half.objective,
-        "violation": max(v.violation, half.violation),
-        "unmeasured": v.unmeasured,
+        "violation": worst["violation"],
+        "violation_steps": [s.violation for s in steps],
+        "unmeasured": worst["unmeasured"],
         "binding": None if v.binding is None else v.binding["requirement"],
         "requirements": [
-            {k: r[k] for k in ("requirement", "worst", "margin", "met")} | {"worst_half": h["worst"]}
-            for r, h in zip(v.requirements, half.requirements)
+            {k: r[k] for k in ("requirement", "worst", "margin", "met")}
+            | {"worst_half": h["worst"], "worst_quarter": q["worst"]}
+            for r, h, q in zip(v.requirements, half.requirements, quarter.requirements)
         ],
         "step_error": v.step_error,
         "draws": len(draws) + len(extra),
