@@ -181,3 +181,19 @@ def test_quick_benchmark_writes_the_documented_fields(tmp_path):
     } <= set(s)
     assert set(s["coopjax_over_strong_peer"]) == {"filippov_float32", "filippov_float64", "rk4_float32", "rk4_float64"}
     assert plot.stat().st_size > 10_000
+
+
+def test_the_suite_counts_an_answer_at_its_worst_over_the_judges_steps():
+    """A value that moves with the step is not the dt -> 0 limit's: an answer that holds at dt and
+    dt/2 but misses at dt/4 is not solved, and its least violation and objective are the worst
+    of the three steps (the best known's are judged so too)."""
+    from types import SimpleNamespace
+
+    from benchmarks.problem_suite import worst_over_steps
+
+    at = lambda holds, objective, violation: SimpleNamespace(
+        holds=holds, objective=objective, violation=violation, unmeasured=0.0
+    )
+    worst = worst_over_steps([at(True, 15.1, 0.0), at(True, 15.0, 0.0), at(False, 22.7, 1.83)])
+    assert worst == {"holds": False, "objective": 22.7, "violation": 1.83, "unmeasured": 0.0}
+    assert worst_over_steps([at(True, 15.1, 0.0)] * 3)["holds"]
