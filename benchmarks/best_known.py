@@ -204,7 +204,10 @@ def merge(paths: list[str], folders: list[str]) -> int:
             print(f"{name}: the recorded best-known stays ({old['objective']:.5g} N)")
             continue
         origin = sources[i - (1 if old else 0)][0]
-        entry["search"] = (old or {}).get("search", {}) | {"found_by": f"coopjax tune's answer in {origin}"}
+        entry["search"] = (old or {}).get("search", {}) | {
+            "found_by": f"coopjax tune's answer in {origin}",
+            "judged_dt": [1e-3, 5e-4, 2.5e-4],
+        }
         save(name, entry)
         print(
             f"{name}: {origin}'s answer is better: objective {entry['objective']:.5g} N, feasible {entry['feasible']}"
