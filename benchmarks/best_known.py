@@ -24,8 +24,11 @@ import fcntl
 import json
 import os
 import time
+from types import SimpleNamespace
 
 import numpy as np
+
+from benchmarks.problem_suite import ladder, problem_files, steps, worst_over_steps
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PROBLEMS = os.path.join(HERE, "problems")
@@ -103,7 +106,7 @@ def search(
             restarts += 1
             run += 1
             popsize *= 2
-    # The best distinct candidates, judged again on a fresh dense design at dt and dt/2.
+    # The best distinct candidates, judged again on a fresh dense design at dt, dt/2 and dt/4.
     archive.sort(key=lambda a: a[0])
     kept: list[np.ndarray] = []
     for _, x in archive:
@@ -127,7 +130,7 @@ def search(
         "search_dt": search_dt,
         "started_from_others": len(known),
         "judged_draws": len(design.dense(problem.uncertain)),
-        "judged_dt": [1e-3, 5e-4, 2.5e-4],
+        "judged_dt": steps(),
         "found_by": "search" if entry["index"] < len(kept) - len(known) else "an answer given (--starts-from)",
     }
     if entry["index"] == len(kept):  # the recorded one stays: this search found nothing better
@@ -143,19 +146,13 @@ def final(problem, candidates: list[dict]) -> dict:
     """The best of `candidates` judged on a fresh dense design at dt (with the two-step check), dt/2
     and dt/4, each counted at its worst of the three (`problem_suite.worst_over_steps`), in the
     judge's order (`tuning.judging.preferred`), as an entry of best_known.json."""
-    from benchmarks.problem_suite import ladder, worst_over_steps
     from tuning import design
+    from tuning.judging import preferred
 
-    steps = ladder(candidates, design.dense(problem.uncertain), problem)
-    worst = [worst_over_steps([s[i] for s in steps]) for i in range(len(candidates))]
-    key = lambda i: (
-        not worst[i]["holds"],
-        worst[i]["unmeasured"],
-        0.0 if worst[i]["holds"] else worst[i]["violation"],
-        worst[i]["objective"] if np.isfinite(worst[i]["objective"]) else np.inf,
-    )
-    i = min(range(len(candidates)), key=key)
-    v, w = steps[0][i], worst[i]
+    judged = ladder(candidates, design.dense(problem.uncertain), problem)
+    worst = [worst_over_steps([s[i] for s in judged]) for i in range(len(candidates))]
+    i = preferred([SimpleNamespace(**w) for w in worst])  # reads holds, unmeasured, violation, objective
+    v, w = judged[0][i], worst[i]
     return {
         "index": i,
         "params": candidates[i],
@@ -206,7 +203,7 @@ def merge(paths: list[str], folders: list[str]) -> int:
         origin = sources[i - (1 if old else 0)][0]
         entry["search"] = (old or {}).get("search", {}) | {
             "found_by": f"coopjax tune's answer in {origin}",
-            "judged_dt": [1e-3, 5e-4, 2.5e-4],
+            "judged_dt": steps(),
         }
         save(name, entry)
         print(
@@ -234,7 +231,6 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from benchmarks.problem_suite import problem_files
     from tuning.problem import Problem
 
     paths = problem_files(PROBLEMS, args.names)

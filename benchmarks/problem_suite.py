@@ -57,12 +57,21 @@ def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> 
 HALVINGS = (1, 2, 4)
 
 
-def ladder(sets: list[dict], draws, problem, extra=None) -> list[list]:
-    """Per step of `HALVINGS`, the verdicts of `sets` on `draws` (and `extra`); at the judge's step
-    with the two-step check, so that a step artefact does not hold."""
-    from tuning.judging import JUDGE_DT, judge
+def steps() -> list[float]:
+    """The judge's steps of `HALVINGS`, s."""
+    from tuning.judging import JUDGE_DT
 
-    return [judge(list(sets), draws, problem, dt=JUDGE_DT / r, check_step=r == 1, extra=extra) for r in HALVINGS]
+    return [JUDGE_DT / r for r in HALVINGS]
+
+
+def ladder(sets: list[dict], draws, problem, extra=None) -> list[list]:
+    """Per step of `steps()`, the verdicts of `sets` on `draws` (and `extra`); at the judge's step
+    with the two-step check, so that a step artefact does not hold."""
+    from tuning.judging import judge
+
+    return [
+        judge(list(sets), draws, problem, dt=dt, check_step=r == 1, extra=extra) for r, dt in zip(HALVINGS, steps())
+    ]
 
 
 def worst_over_steps(verdicts: list) -> dict:
@@ -84,15 +93,15 @@ def judged(params: dict, problem) -> dict:
     draws = design.dense(problem.uncertain)
     first = judge(params, draws, problem, check_step=True)
     extra = worst_case(params, draws, problem, verdict=first)
-    steps = [vs[0] for vs in ladder([params], draws, problem, extra)]
-    v, half, quarter = steps
-    worst = worst_over_steps(steps)
+    judged = [vs[0] for vs in ladder([params], draws, problem, extra)]
+    v, half, quarter = judged
+    worst = worst_over_steps(judged)
     return {
         "solved": worst["holds"],
         "objective": worst["objective"],
         "objective_half": half.objective,
         "violation": worst["violation"],
-        "violation_steps": [s.violation for s in steps],
+        "violation_steps": [s.violation for s in judged],
         "unmeasured": worst["unmeasured"],
         "binding": None if v.binding is None else v.binding["requirement"],
         "requirements": [
