@@ -528,18 +528,47 @@ def test_a_polish_afresh_starts_a_new_strategy_from_the_answer_with_the_first_st
     assert dataclasses.replace(tuner, polish=0).polish_afresh(before.state, answer) is None
 
 
-def test_a_further_polish_goes_on_with_the_same_strategy_and_only_from_the_polishs_answer():
-    """`polish_further` from the polish's best: the next `polish` generations ask exactly what a run
-    with twice the polish would have asked (the strategy goes on, it does not restart), and its only
-    candidate is the polish's best, no worse on the training draws. From any other point (a local
-    solve's answer) nothing goes on."""
+def test_where_only_the_feasibility_polish_holds_the_local_solves_run_again_from_its_answer():
+    """No solve held, and the feasibility polish's best holds at its training draws: going on from it
+    (`polish_further`) runs the local solves again, from it and points around it, on the training
+    draws in the first solves' shapes (nothing compiled again), then the plain polish; the solves
+    then reach the minimax optimum the polish's answer is far from."""
+    trained = PROBLEM.fixed_training_draws()
+    tuner = ScreenSLP(screen=0, local=2, steps=30, polish=4)
+    first = MissedBetween(trained)
+    before = solve(tuner, [[0.9, 0.0]], first)
+    assert before.state.infeasible and not before.state.polished.holds
+    answer = before.state.polished.theta
+    assert tuner.polish_further(before.state, answer).phase == "polish"  # nothing holds: the polish goes on
+    held = dataclasses.replace(before.state, polished=before.state.polished._replace(holds=True))
+    state = tuner.polish_further(held, answer)
+    assert state.phase == "jacobian" and not state.infeasible and state.resolved
+    assert np.array_equal(state.theta[0], answer) and np.abs(state.theta[1:] - answer).max() < 1.0
+    again, said = Analytic(), []
+    after = solve(tuner, [[0.9, 0.0]], again, state=state, on_step=lambda *s: said.append(tuner.progress_text(*s)))
+    shape = lambda q: (q.derivative, np.shape(q.thetas), np.shape(q.draws))
+    assert shape(again.queries[0]) == ("jacobian", (tuner.local, 2), trained.shape)
+    assert {shape(q) for q in again.queries} <= {shape(q) for q in first.queries}
+    assert any(text and "local solves again" in text for text in said)
+    assert tuner.run_text(after.state) is None  # the plain polish followed
+    best = after.tuner.candidates(after.state)[0]
+    assert np.allclose(best, CB2_AT, atol=1e-3) and cb2(answer)[0].max() > CB2_MIN + 0.1
+
+
+def test_a_further_polish_goes_on_with_the_same_strategy_whichever_answer_was_chosen():
+    """`polish_further`: the next `polish` generations ask exactly what a run with twice the polish
+    would have asked (the strategy goes on, it does not restart), and its only candidate is the
+    polish's best, no worse on the training draws; the same where the chosen answer is a local
+    solve's (the validation preferred it to the polish's)."""
     tuner, starts = ScreenSLP(screen=0, local=2, steps=2, polish=3), [[2.0, 2.0], [0.0, -1.0]]
     before = solve(tuner, starts, Analytic())
     longer = Analytic()
     solve(dataclasses.replace(tuner, polish=6), starts, longer)
     polished = before.state.polished.theta
-    assert tuner.polish_further(before.state, polished + 1e-3) is None  # not the polish's answer
     state = tuner.polish_further(before.state, before.state.polished.theta)
+    other = tuner.polish_further(before.state, polished + 1e-3)  # a local solve's answer
+    assert other.phase == "polish" and other.until == state.until
+    assert np.array_equal(other.polish_es.mean, state.polish_es.mean)
     further = Analytic()
     after = solve(tuner, starts, further, state=state)
     assert after.evaluations == 3

@@ -228,8 +228,8 @@ def test_an_answer_that_misses_goes_on_with_the_draws_where_it_misses_most():
 
 
 @pytest.mark.slow  # 30 s, most of it compiling; the polish's going on is tested in CI (test_screen_slp)
-def test_where_the_polishs_answer_is_chosen_the_polish_goes_on_while_it_wins_on_validation():
-    """With `further`, a chosen answer that is the polish's best is polished on, round by round,
+def test_the_polish_goes_on_from_the_chosen_answer_while_it_wins_on_validation():
+    """With `further`, the polish goes on from the chosen answer (its best or a local solve's), round by round,
     and each round's best replaces it only where the validation draws prefer it; the rounds stop
     at the first that loses, and without `further` there is none."""
     tuner = TUNERS["screen-SLP"](screen=0, local=1, radii=2, steps=1, polish=4, jacobian="fd")

@@ -386,30 +386,33 @@ def run(
         more = driver.run(tuner, trained, session.base, theta[None], o.seed, state=state, progress=progress)
         result = _added(result, more)._replace(state=more.state)
         longer = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
-        if not longer or longer[0] == options[chosen]:
+        longer = [x for x in longer if x != options[chosen]]
+        if not longer:
             log("  the answer before stands (the longer polish found nothing better on its training draws)")
             return {"evaluations": more.evaluations, "kept": "nothing better on the training draws"}
-        k, pair = select([options[chosen], longer[0]], draws, problem, session.base, o.judge_dt, check_step=False)
+        # The round's candidates: the polish's best, or each solve's where the solves ran again.
+        k, pool = select([options[chosen], *longer], draws, problem, session.base, o.judge_dt, check_step=False)
+        best = pool[k] if k else pool[preferred(pool[1:]) + 1]
         record = {
             "evaluations": more.evaluations,
             "kept": LONGER if k else "the answer before",
-            "violation": [pair[0].violation, pair[1].violation],
-            "objective": [pair[0].objective, pair[1].objective],
+            "violation": [pool[0].violation, best.violation],
+            "objective": [pool[0].objective, best.objective],
         }
         if k == 0:
-            longer_text = f"{_missing(pair[1])}; objective {pair[1].objective:.4g}"
+            longer_text = f"{_missing(best)}; objective {best.objective:.4g}"
             log(f"  the answer before stands (the longer polish's: {longer_text})")
             return record
-        options.append(longer[0])
-        chosen, v = len(options) - 1, pair[1]
-        selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts + [pair[1]])
+        options.append(longer[k - 1])
+        chosen, v = len(options) - 1, best
+        selection["chosen"], selection["trade_off"] = chosen, trade_off(verdicts + [best])
         selection["validation"] = _validation_row(v)
         log(f"  a better answer found: {_missing(v)}; objective {v.objective:.4g} N")
         return record
 
     selection["further"] = []
     for _ in range(o.further):
-        record = polish_on(problem, "the chosen answer is the polish's: the polish goes on ...")
+        record = polish_on(problem, "the search goes on from the chosen answer (--further) ...")
         if record is not None:
             selection["further"].append(record)
         if record is None or record["kept"] != LONGER:
