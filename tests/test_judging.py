@@ -134,41 +134,6 @@ def test_the_draws_a_round_adds_are_where_each_missed_requirement_misses_most():
     ).tolist() == [[2.0]]
 
 
-def test_a_holding_answer_goes_on_where_a_max_term_is_worse_between_the_validation_draws():
-    """`worse_at`: a `max` term worse than validation saw it by more than the share given adds the
-    draw where it is largest (over the scenarios it counts on); a term within the share, or a
-    `mean` term (an aggregate over other draws), adds nothing."""
-    draws = np.array([[1.0], [2.0], [4.0]])
-    term = lambda metric, over, value: {"metric": metric, "over": over, "value": value, "scenarios": ["carry"]}
-    verdict = lambda peak, lag: judgement.Verdict(
-        objective=0.0,
-        terms=[term("peak_grip", "max", peak), term("rms_lag", "max", lag), term("crush", "mean", 50.0)],
-        requirements=[],
-        worst={},
-        finite=True,
-        measured=True,
-        holds=True,
-        unmeasured=0.0,
-        step_error=float("nan"),
-        step_artefact=False,
-        per_case={
-            "peak_grip": [30.0, 49.0, 35.0, 90.0, 90.0, 90.0],  # the other scenario's never counts
-            "rms_lag": [6e-3, 5e-3, 7e-3, 0.0, 0.0, 0.0],
-            "crush": [50.0] * 6,
-            "status": ["ok"] * 6,
-            "scenario": ["carry"] * 3 + ["paper"] * 3,
-            "dt": [1e-3] * 6,
-        },
-    )
-    validation = verdict(37.5, 6.9e-3)._replace(per_case={})
-    validation = validation._replace(terms=validation.terms[:2] + [term("crush", "mean", 10.0)])
-    add, metrics = judgement.worse_at(verdict(49.0, 7e-3), validation, draws, 0.02)
-    assert add.tolist() == [[2.0]] and metrics == ["peak_grip"]  # the lag is within 2 %, the mean never counts
-    add, metrics = judgement.worse_at(verdict(49.0, 7.1e-3), validation, draws, 0.02)
-    assert add.tolist() == [[2.0], [4.0]] and metrics == ["peak_grip", "rms_lag"]
-    assert judgement.worse_at(verdict(37.6, 6.9e-3), validation, draws, 0.02)[0].shape == (0, 1)
-
-
 @pytest.mark.parametrize("status", ["diverged", "step_beyond_limit", "unstable_loop"])
 def test_every_unmeasured_case_has_a_finite_badness_of_at_least_one(status):
     from coopjax.status import Status

@@ -379,23 +379,6 @@ def missed_at(verdict: Verdict, draws) -> np.ndarray:
     return np.unique(np.reshape(out, (-1, draws.shape[1])), axis=0)
 
 
-def worse_at(verdict: Verdict, than: Verdict, draws, by: float) -> tuple[np.ndarray, list[str]]:
-    """Where a holding answer's `max` terms are worse than a verdict on other draws saw them (`than`,
-    the validation's): for each such term whose value in `verdict` exceeds `than`'s by more than the
-    share `by`, the draw among those judged (`draws`, then any `extra`) where it is largest; and the
-    terms' metrics. A narrow band of the box between the validation draws (a peak of 49 N at 2.0 kg
-    where every validation mass gave at most 37.5 N) is what this finds."""
-    draws = np.asarray(draws, np.float64)
-    draws = draws[:, None] if draws.ndim == 1 else draws
-    worse = [
-        i
-        for i, (t, u) in enumerate(zip(verdict.terms, than.terms))
-        if t["over"] == "max" and np.isfinite(t["value"]) and t["value"] > u["value"] * (1 + by)
-    ]
-    out = [draws[int(np.argmax(_score(verdict, ("minimise", i), len(draws))))] for i in worse]
-    return np.unique(np.reshape(out, (-1, draws.shape[1])), axis=0), [verdict.terms[i]["metric"] for i in worse]
-
-
 def _targets(problem: Problem) -> list:
     """What a worst case is searched for: each requirement, each `max` term."""
     return [("require", i) for i in range(len(problem.require))] + [

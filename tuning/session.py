@@ -27,18 +27,7 @@ from coopjax.simulation import memory_limit, simulate
 from coopjax.stability import check_step
 from tuning import driver
 from tuning.design import describe as describe_draws
-from tuning.judging import (
-    JUDGE_DT,
-    REFINE,
-    Verdict,
-    judge,
-    judge_config,
-    missed_at,
-    preferred,
-    select,
-    worse_at,
-    worst_case,
-)
+from tuning.judging import JUDGE_DT, REFINE, Verdict, judge, judge_config, missed_at, preferred, select, worst_case
 from tuning.problem import Problem, from_log, to_log
 from tuning.training import EDGE, measurable_step, starting_points, step_edge
 from tuning.tuners import Tuner
@@ -80,9 +69,8 @@ class Options:
     )
     again: int = setting(
         1,
-        "rounds that go on from an answer missing a requirement, or whose worst case of a max term between the "
-        "validation draws is worse than on them, with the draws where it misses most (is worst) added to training "
-        "(0: none)",
+        "rounds that go on from an answer missing a requirement, with the draws where it misses most added to "
+        "training (0: none)",
         "--again",
         kind=int,
         check=lambda x: None if x >= 0 else "it must be 0 or more",
@@ -159,9 +147,6 @@ class Tuned(NamedTuple):
     start_trace: Any = None  # and its recorded run at the ends of the box (for figures)
 
 
-# A holding answer goes on (`Options.again`) where a `max` term of its objective is worse on the held-out
-# draws and those found between them than on the validation draws by more than this share.
-AGAIN_WORSE = 0.02
 LONGER = "the longer polish's best"  # `selection.further`: a round whose best replaced the answer
 
 # Bytes one training run holds while a batch runs, per value it carries (its state and metric
@@ -470,26 +455,19 @@ def run(
     # draw, keeps whichever is better, and the judge searches between its draws again.
     selection["again"] = []
     for _ in range(o.again):
-        # Only where the judge found the answer missing more than its validation did (where validation
-        # saw the miss as large already, a grip lost, a round measured changed nothing but the time),
-        # or, where it holds, a worst case of the objective worse than validation saw by AGAIN_WORSE.
-        judged_on = np.concatenate([session.held_out, new])
-        if not verdict.holds:
-            if verdict.violation <= v.violation * (1 + 1e-6):
-                break
-            add = missed_at(verdict, judged_on)
-            why = f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}"
-        else:
-            add, metrics = worse_at(verdict, v, judged_on, AGAIN_WORSE)
-            if not len(add):
-                break
-            why = f"the answer's worst {' and '.join(metrics)} between the validation draws is worse than on them"
-        add = problem.within_box(add)
+        # Only where the judge found the answer missing more than its validation did: where validation
+        # saw the miss as large already (a grip lost), a round measured changed nothing but the time.
+        if verdict.holds or verdict.violation <= v.violation * (1 + 1e-6):
+            break
+        add = problem.within_box(missed_at(verdict, np.concatenate([session.held_out, new])))
         theta = to_log(options[chosen], problem.names)
         state = tuner.go_on(result.state, theta, add)
         if state is None:
             break
-        log(f"{why}: going on with {describe_draws(problem.uncertain, add)} in the training draws ...")
+        log(
+            f"the answer misses {', '.join(r['requirement'] for r in verdict.requirements if not r['met'])}: "
+            f"going on with {describe_draws(problem.uncertain, add)} in the training draws ..."
+        )
         more = driver.run(tuner, trained, session.base, theta[None], o.seed, state=state, progress=progress)
         result = _added(result, more)
         fresh = [from_log(t, problem.names) for t in tuner.candidates(more.state)] if more.evaluations else []
@@ -497,7 +475,6 @@ def run(
         k, verdicts = select(pool, np.concatenate([draws, add]), problem, session.base, o.judge_dt, check_step=False)
         selection["again"].append(
             {
-                "why": why,
                 "added": {u.name: add[:, i].tolist() for i, u in enumerate(problem.uncertain)},
                 "candidates": len(fresh),
                 "kept": "the new polish's best" if k else "the answer before",
