@@ -184,6 +184,9 @@ def save(name: str, entry: dict) -> None:
 
 
 def merge(paths: list[str], folders: list[str]) -> int:
+    """Each problem's recorded best known and the answers of `folders` (NAME.json), judged by `final`:
+    the best is kept, and the recorded one, where it stays, with its values judged now."""
+    from tuning import design
     from tuning.problem import Problem
 
     known = json.load(open(OUT)) if os.path.exists(OUT) else {}
@@ -195,16 +198,19 @@ def merge(paths: list[str], folders: list[str]) -> int:
         candidates = ([old["params"]] if old else []) + [params for _, params in sources]
         if not candidates:
             continue
-        entry = final(Problem.from_toml(path), candidates)
+        problem = Problem.from_toml(path)
+        entry = final(problem, candidates)
         i = entry.pop("index")
-        if old and i == 0:
-            print(f"{name}: the recorded best-known stays ({old['objective']:.5g} N)")
+        judged = {"judged_dt": steps(), "judged_draws": len(design.dense(problem.uncertain))}
+        if old and i == 0:  # it stays, with its values as the judge reads them now
+            entry["search"] = old.get("search", {}) | judged
+            save(name, entry)
+            print(
+                f"{name}: the recorded best-known stays ({old['objective']:.5g} N, judged now {entry['objective']:.5g})"
+            )
             continue
         origin = sources[i - (1 if old else 0)][0]
-        entry["search"] = (old or {}).get("search", {}) | {
-            "found_by": f"coopjax tune's answer in {origin}",
-            "judged_dt": steps(),
-        }
+        entry["search"] = (old or {}).get("search", {}) | judged | {"found_by": f"coopjax tune's answer in {origin}"}
         save(name, entry)
         print(
             f"{name}: {origin}'s answer is better: objective {entry['objective']:.5g} N, feasible {entry['feasible']}"
