@@ -197,3 +197,23 @@ def test_the_suite_counts_an_answer_at_its_worst_over_the_judges_steps():
     worst = worst_over_steps([at(True, 15.1, 0.0), at(True, 15.0, 0.0), at(False, 22.7, 1.83)])
     assert worst == {"holds": False, "objective": 22.7, "violation": 1.83, "unmeasured": 0.0}
     assert worst_over_steps([at(True, 15.1, 0.0)] * 3)["holds"]
+
+
+def test_every_best_known_was_judged_on_the_design_the_suite_judges_on():
+    """A ratio compares two answers judged alike: each problem's best known must have been judged on
+    the dense design the suite uses now (its size) at the suite's steps, and a change of either
+    means judging the best knowns again (`python -m benchmarks.best_known --merge`)."""
+    import json
+    import os
+
+    from benchmarks.problem_suite import PROBLEMS, problem_files, steps
+    from tuning import design
+    from tuning.problem import Problem
+
+    known = json.load(open(os.path.join(PROBLEMS, "best_known.json")))
+    for path in problem_files(PROBLEMS):
+        name = os.path.basename(path)[:-5]
+        problem = Problem.from_toml(path)
+        search = known[name]["search"]
+        assert search["judged_draws"] == len(design.dense(problem.uncertain)), name
+        assert search["judged_dt"] == list(steps()), name
