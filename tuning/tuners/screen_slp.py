@@ -523,13 +523,12 @@ class ScreenSLP(Tuner):
         if not ranked:  # nothing ran: carry on from the given starts (their failure is reported)
             ranked = list(range(min(self.local, len(state.starts))))
         chosen, rest = ranked[: self.local], ranked[self.local :]
-        K = len(chosen)
-        state.theta = query.thetas[chosen].copy()
-        state.radius = np.full(K, self.radius)
-        state.pending = np.ones(K, bool)
-        state.queue = [query.thetas[i].copy() for i in rest]
-        state.best = [Best(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen]
-        state.lane = list(range(K))
+        self._start_solves(
+            state,
+            query.thetas[chosen].copy(),
+            [Best(bool(ev.holds[i]), float(phi[i]), query.thetas[i].copy()) for i in chosen],
+            [query.thetas[i].copy() for i in rest],
+        )
         state.screened = {
             "points": len(query.thetas),
             "finite": int(ok.sum()),
@@ -538,6 +537,13 @@ class ScreenSLP(Tuner):
         }
         state.phase = "jacobian" if self.local_solve else "screen only"
         return state
+
+    def _start_solves(self, state, thetas, best, queue):
+        """The local solves' lanes from `thetas` (each lane's `Best` so far in `best`), with `queue`
+        for refills; each lane's Jacobian comes next."""
+        state.theta, state.radius = thetas, np.full(len(thetas), self.radius)
+        state.pending, state.queue = np.ones(len(thetas), bool), queue
+        state.best, state.lane = best, list(range(len(thetas)))
 
     def _keep_best(self, state, k, holds, phi, theta):
         state.best[state.lane[k]] = state.best[state.lane[k]].told(holds, phi, theta)
@@ -694,10 +700,7 @@ class ScreenSLP(Tuner):
         thetas = np.clip(theta + rng.normal(0.0, self.resolve_sigma, (self.local, len(theta))), lo, hi)
         thetas[0] = theta
         state.draws = state.problem.fixed_training_draws()
-        state.theta, state.radius = thetas, np.full(self.local, self.radius)
-        state.pending, state.queue = np.ones(self.local, bool), []
-        state.best = [Best(False, np.inf, t.copy()) for t in thetas]
-        state.lane = list(range(self.local))
+        self._start_solves(state, thetas, [Best(False, np.inf, t.copy()) for t in thetas], [])
         state.phase, state.step, state.current = "jacobian", 0, None
         state.infeasible, state.polished, state.polish_es = False, Best(), None
         state.generation, state.until, state.resolved = 0, None, True
@@ -807,8 +810,8 @@ class ScreenSLP(Tuner):
         live = int((state.radius > 0).sum())
         best = min((b for b in state.best if b.holds), key=lambda b: b.value, default=None)
         text = f"best holding solve: merit {best.value:.4g} N" if best else "no solve holds yet"
-        again = "the feasibility polish's answer holds: local solves again from it\n" if state.resolved else ""
-        again = again if state.step == 1 else ""
+        first = state.resolved and state.step == 1
+        again = "the feasibility polish's answer holds: local solves again from it\n" if first else ""
         return again + (
             f"step {state.step:3d}/{self.steps}  merit of the lanes {np.nanmin(phi):.4g} to "
             f"{np.nanmax(phi[np.isfinite(phi)]) if np.isfinite(phi).any() else float('nan'):.4g} N, "
