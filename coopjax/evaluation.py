@@ -81,8 +81,10 @@ def evaluate(
       block: samples per device per call (None: `block_size` of the batch).
       refine: a sample whose step is beyond its loop's stability limit runs again at dt / 2^k, the
         longest such step within the limit, for k up to `refine` (and is checked at half that step):
-        its values then stand for the model, not for a step it cannot take. The `dt` column says the
-        step each sample ran at. 0: such a sample keeps status `step_beyond_limit`.
+        its values then stand for the model, not for a step it cannot take. With `check_step`, a
+        step artefact runs again the same way, at dt / 2, dt / 4, ... until its check agrees: where
+        dt misses an event that decides a value, the first two steps that agree give the limit's.
+        The `dt` column says the step each sample ran at. 0: such samples keep their status.
       shared: run unchecked samples in the program a checked evaluation runs (`shares_program`), so
         that a caller evaluating both ways (the tuner's judge: selection, search, verdict) compiles
         one program, not two. Values move by round-off only (1e-11 relative in float64).
@@ -97,8 +99,10 @@ def evaluate(
     status = _status(out, growth, config.dt > limit, check_step)
     out["dt"] = np.full(len(status), config.dt)
     for k in range(1, refine + 1):
-        # The longest halving within the limit: each sample refined once, at its own step.
-        rows = np.flatnonzero((status == Status.STEP_BEYOND_LIMIT) & (config.dt / 2**k <= limit))
+        # The longest halving within the limit (each such sample refined once, at its own step), and
+        # every sample whose check still disagrees.
+        beyond = (status == Status.STEP_BEYOND_LIMIT) & (config.dt / 2**k <= limit)
+        rows = np.flatnonzero(beyond | (status == Status.STEP_ARTEFACT))
         if not len(rows):
             continue
         part = jax.tree_util.tree_map(lambda x: x[..., rows], params)

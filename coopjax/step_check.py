@@ -9,7 +9,8 @@ The check runs the same parameters again at dt / 2 and compares the three answer
 min grip (absolute), peak grip and RMS lag (relative), against the accuracy tolerances. Where the
 step is converged the two runs differ by far less than the tolerances (at dt = 1e-3 by under a tenth
 of them on random samples); a sample whose answers move by more is a step artefact, and a sweep marks
-it so (status `step_artefact`), the tuner's judge rejects it.
+it so (status `step_artefact`). The tuner's judge runs such a sample again at dt / 2, dt / 4, ... and
+reads its values where two steps first agree; one that never agrees is rejected.
 """
 
 from __future__ import annotations

@@ -57,7 +57,9 @@ class Verdict(NamedTuple):
     # how far its step is beyond the loop's limit, or how fast its loop grows (`unmeasured`).
     unmeasured: float
     step_error: float  # the two-step check's worst disagreement, in tolerances (NaN: not checked)
-    step_artefact: bool  # some case's answer moved by more than a tolerance between dt and dt/2
+    # Some case's answer still moved by more than a tolerance between its step and half of it after
+    # `REFINE` halvings (a case whose check agrees at a finer step reads that step's values).
+    step_artefact: bool
     per_case: dict  # name -> list over cases; also `status` (labels), `scenario` and each uncertain parameter
 
     def __getattr__(self, name):
