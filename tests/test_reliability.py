@@ -61,6 +61,8 @@ COMMANDS = {
         "2",
         "--held-out",
         "2",
+        "--validation-draws",
+        "8",
         "--params",
         "gains",
         "--quiet",

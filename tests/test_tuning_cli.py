@@ -67,6 +67,8 @@ def test_a_full_disk_at_the_end_keeps_the_checkpoint_and_resume_writes_the_resul
         "2",
         "--held-out",
         "2",
+        "--validation-draws",
+        "8",
         "--params",
         "gains",
         "--masses",
