@@ -53,7 +53,9 @@ def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> 
 
 
 # The judge's step and its halves. A value that moves between them is not yet the dt -> 0 limit's
-# (an event the grid does not resolve): each answer is counted at its worst over the three.
+# (an event the grid does not resolve): each answer is counted at its worst over the three. At dt the
+# two-step check runs, and a draw it flags reads the finer steps where two of them first agree (the
+# judge's refinement): one grid's miss of an event is not the model's value.
 HALVINGS = (1, 2, 4)
 
 
@@ -139,6 +141,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import jax
 
+    import coopjax
+
+    coopjax.use_all_cores()  # the judging runs here, between the commands, on every core
     jax.config.update("jax_enable_x64", True)
     from tuning.problem import Problem
 
