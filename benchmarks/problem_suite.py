@@ -54,8 +54,8 @@ def tune(path: str, out: str, cache: str, extra=(), tool: str | None = None) -> 
 
 # The judge's step and its halves. A value that moves between them is not yet the dt -> 0 limit's
 # (an event the grid does not resolve): each answer is counted at its worst over the three. At dt the
-# two-step check runs, and a draw it flags reads the finer steps where two of them first agree (the
-# judge's refinement): one grid's miss of an event is not the model's value.
+# two-step check runs, and a draw it flags reads the first of dt/2, dt/4, ... that agrees with its
+# half (the judge's refinement): one grid's miss of an event is not the model's value.
 HALVINGS = (1, 2, 4)
 
 

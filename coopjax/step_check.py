@@ -10,7 +10,7 @@ min grip (absolute), peak grip and RMS lag (relative), against the accuracy tole
 step is converged the two runs differ by far less than the tolerances (at dt = 1e-3 by under a tenth
 of them on random samples); a sample whose answers move by more is a step artefact, and a sweep marks
 it so (status `step_artefact`). The tuner's judge runs such a sample again at dt / 2, dt / 4, ... and
-reads its values where two steps first agree; one that never agrees is rejected.
+reads its values at the first step that agrees with its half; one that never agrees is rejected.
 """
 
 from __future__ import annotations
