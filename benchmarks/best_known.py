@@ -193,7 +193,8 @@ def merge(paths: list[str], folders: list[str]) -> int:
     for path in paths:
         name = os.path.basename(path)[:-5]
         sources = [(f, os.path.join(f, name + ".json")) for f in folders]
-        sources = [(f, json.load(open(p))["params"]) for f, p in sources if os.path.exists(p)]
+        sources = [(f, json.load(open(p))) for f, p in sources if os.path.exists(p)]
+        sources = [(f"at seed {t['config']['seed']} (`{f}`)", t["params"]) for f, t in sources]
         old = known.get(name)
         candidates = ([old["params"]] if old else []) + [params for _, params in sources]
         if not candidates:
@@ -210,10 +211,10 @@ def merge(paths: list[str], folders: list[str]) -> int:
             )
             continue
         origin = sources[i - (1 if old else 0)][0]
-        entry["search"] = (old or {}).get("search", {}) | judged | {"found_by": f"coopjax tune's answer in {origin}"}
+        entry["search"] = (old or {}).get("search", {}) | judged | {"found_by": f"coopjax tune's answer {origin}"}
         save(name, entry)
         print(
-            f"{name}: {origin}'s answer is better: objective {entry['objective']:.5g} N, feasible {entry['feasible']}"
+            f"{name}: the answer {origin} is better: objective {entry['objective']:.5g} N, feasible {entry['feasible']}"
         )
     return 0
 
