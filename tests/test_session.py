@@ -1,6 +1,6 @@
 """One tuning session behind every front end: `coopjax tune`, `tuning.tune`, the race and the Pareto
-study give the same answer on a small problem; the session's checks are the command's; a tuner's
-state is never changed in place."""
+study give the same answer on a small problem (the last two under -m slow); the session's checks are
+the command's; a tuner's state is never changed in place."""
 
 import copy
 import dataclasses
@@ -32,23 +32,28 @@ FLAGS = (
 ).split()
 
 
-def test_the_command_the_api_the_race_and_the_pareto_study_give_the_same_answer(fresh_dir, capsys):
+def test_the_command_and_the_api_give_the_same_answer(fresh_dir, capsys):
     tuned = tuning.tune(PROBLEM, "random search", options=OPTIONS, **SETTINGS)
-    prepared = session.prepare(PROBLEM, TUNERS["random search"](**SETTINGS), OPTIONS)
-    raced = race.run({"random search": prepared}, "random search", [OPTIONS.seed], log=lambda s: None)
-    front = pareto.run({"random search": prepared}, "random search", [PROBLEM.minimise[-1].weight], log=lambda s: None)
     flags = [f if f != "random-search" else "random search" for f in FLAGS]
     code = cli.main(["tune", *flags, "--out", "t.json"])
     written = json.loads((fresh_dir / "t.json").read_text())
     assert code == (0 if written["holds"] else 3), capsys.readouterr()
-    assert raced["per_seed"][0]["chosen"]["random search"] == tuned.params
-    assert next(r["params"] for r in front["pareto"] if r["kind"] == "front") == tuned.params
     # What the command wrote is what a fresh judgement of the same parameters gives.
     assert written["params"] == tuned.params
     assert written["after"]["objective"] == pytest.approx(tuned.verdict.objective, rel=1e-12)
     assert [r["met"] for r in written["requirements"]] == [r["met"] for r in tuned.verdict.requirements]
     assert (fresh_dir / "t_history.png").stat().st_size > 10_000 and (fresh_dir / "t_traces.png").exists()
     assert sorted(p.name for p in fresh_dir.iterdir()) == ["t.json", "t_history.png", "t_traces.png"]
+
+
+@pytest.mark.slow  # two more sessions (16 s of the suite's CPU); the command and the API are compared above
+def test_the_race_and_the_pareto_study_give_the_apis_answer():
+    tuned = tuning.tune(PROBLEM, "random search", options=OPTIONS, **SETTINGS)
+    prepared = session.prepare(PROBLEM, TUNERS["random search"](**SETTINGS), OPTIONS)
+    raced = race.run({"random search": prepared}, "random search", [OPTIONS.seed], log=lambda s: None)
+    front = pareto.run({"random search": prepared}, "random search", [PROBLEM.minimise[-1].weight], log=lambda s: None)
+    assert raced["per_seed"][0]["chosen"]["random search"] == tuned.params
+    assert next(r["params"] for r in front["pareto"] if r["kind"] == "front") == tuned.params
 
 
 def test_the_spread_reaches_the_screen_from_every_front_end():
